@@ -29,7 +29,7 @@ reproduce: $(VENV)/.installed
 	$(VENV)/bin/pporpe figures --out $(OUT)/figures
 
 lint: $(VENV)/.installed-dev
-	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
 ## The test suite: lint, types, then pytest.
