@@ -20,6 +20,129 @@ def _cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
+def _learner_overrides(args: argparse.Namespace) -> dict[str, object]:
+    keys = ("method", "eps", "beta", "eta", "gamma", "lr", "policy", "rpe_form", "compile")
+    return {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .config import OnlineConfig, TrainConfig
+    from .envs import resolve_env_id
+
+    # validate everything before any environment is built
+    learner = OnlineConfig(**_learner_overrides(args))  # type: ignore[arg-type]
+    cfg = TrainConfig(
+        env=args.env,
+        seed=args.seed,
+        episodes=200 if args.episodes is None and args.steps is None else args.episodes,
+        steps=args.steps,
+        checkpoint_every=args.checkpoint_every,
+        eval_episodes=args.eval_episodes,
+        learner=learner,
+    )
+    resolve_env_id(cfg.env)
+    from .runner import train
+
+    result = train(cfg, args.out, progress=not args.quiet)
+    last = result.records[-1] if result.records else None
+    if last is not None:
+        print(
+            f"trained {len(result.records)} episodes, {last.total_steps} steps "
+            f"in {last.wall_time:.1f} s ({last.total_steps / max(last.wall_time, 1e-9):.0f} "
+            f"steps/s); last return {last.ret:.1f}"
+        )
+    if result.evaluation is not None:
+        _print_eval(result.evaluation)
+    print(f"run folder: {result.run_dir}")
+    return 0
+
+
+def _print_eval(ev: object) -> None:
+    from .evaluation import EvalResult
+
+    assert isinstance(ev, EvalResult)
+    print(
+        f"test return over {ev.episodes} episodes: median {ev.median:.2f}, "
+        f"mean {ev.mean:.2f}, IQR {ev.iqr:.2f} [{ev.q25:.2f}, {ev.q75:.2f}]"
+    )
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1; got {args.episodes}")
+    from pathlib import Path
+
+    from .evaluation import EVAL_SEED_OFFSET, evaluate_policy
+    from .io import atomic_write_json
+    from .runner import load_learner
+
+    cfg, learner = load_learner(args.run_dir)
+    seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
+    ev = evaluate_policy(learner.act_deterministic, cfg.env, args.episodes, seed)
+    out = Path(args.run_dir) / "evaluation.json"
+    atomic_write_json(out, {**ev.to_dict(), "seed": seed})
+    _print_eval(ev)
+    print(f"saved {out}")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from .grid import load_spec
+    from .reproduce import reproduce
+
+    spec = load_spec(args.spec)  # every run is validated before any starts
+    if args.backend != "ray" and args.address is not None:
+        raise ValueError("--address is only for --backend ray")
+    print(
+        f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
+        f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
+    )
+    outcome = reproduce(
+        spec,
+        args.out,
+        backend=args.backend,
+        workers=args.workers,
+        address=args.address,
+        progress=not args.quiet,
+    )
+    print(
+        f"{len(outcome.done)} runs done ({len(outcome.skipped)} were already done), "
+        f"{len(outcome.failed)} failed, in {outcome.wall_time:.1f} s"
+    )
+    for key, err in outcome.failed.items():
+        print(f"FAILED {key}: {err} (traceback in {args.out}/{key}/error.txt)")
+    if args.report:
+        _report(args.out)
+    return 0 if outcome.ok else 1
+
+
+def _report(out: str) -> None:
+    from .report import write_report
+
+    paths = write_report(out)
+    print(paths[0].read_text())
+    print("wrote " + ", ".join(str(p) for p in paths))
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    _report(args.dir)
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an int >= 1; got {value}")
+    return value
+
+
+def _nonneg_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an int >= 0; got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``pporpe`` command."""
     parser = argparse.ArgumentParser(
@@ -36,6 +159,92 @@ def build_parser() -> argparse.ArgumentParser:
     fig.add_argument("--beta", type=float, default=0.5, help="RPE mixture ratio beta in [0, 1]")
     fig.add_argument("--eta", type=float, default=0.3, help="PPO-RB rollback eta >= 0")
     fig.set_defaults(func=_cmd_figures)
+
+    tr = sub.add_parser("train", help="train the paper's online learner on one task")
+    tr.add_argument(
+        "--method", choices=["ppo", "rb", "rpe"], default="rpe", help="surrogate (default rpe)"
+    )
+    tr.add_argument(
+        "--env",
+        default="pendulum",
+        help="alias (pendulum, swingup, halfcheetah, ant) or a Gymnasium id",
+    )
+    tr.add_argument("--seed", type=_nonneg_int, default=0, help="seed (int >= 0)")
+    length = tr.add_mutually_exclusive_group()
+    length.add_argument("--episodes", type=_positive_int, help="training episodes (default 200)")
+    length.add_argument("--steps", type=_positive_int, help="training environment steps")
+    tr.add_argument("--out", required=True, help="run folder (resumes if it holds a checkpoint)")
+    tr.add_argument("--eps", type=float, help="threshold eps in (0, 1) (default 0.1)")
+    tr.add_argument("--beta", type=float, help="RPE beta in [0, 1] (default 0.5)")
+    tr.add_argument("--eta", type=float, help="PPO-RB eta >= 0 (default 0.3)")
+    tr.add_argument("--gamma", type=float, help="discount in [0, 1) (default 0.99)")
+    tr.add_argument("--lr", type=float, help="learning rate > 0 (default 3e-4)")
+    tr.add_argument("--policy", choices=["student_t", "normal"], help="policy distribution")
+    tr.add_argument(
+        "--rpe-form",
+        dest="rpe_form",
+        choices=["derived", "printed"],
+        help="PPO-RPE gradient: derived (default) or the paper's printed eq.",
+    )
+    tr.add_argument(
+        "--compile",
+        action="store_true",
+        default=None,
+        help="compile the per-step network computation with torch.compile",
+    )
+    tr.add_argument(
+        "--checkpoint-every",
+        type=_positive_int,
+        default=10,
+        help="episodes between checkpoints (default 10)",
+    )
+    tr.add_argument(
+        "--eval-episodes",
+        type=_nonneg_int,
+        default=50,
+        help="test episodes after training (default 50; 0 to skip)",
+    )
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=_cmd_train)
+
+    ev = sub.add_parser("evaluate", help="test a trained run: median, mean and IQR of returns")
+    ev.add_argument("run_dir", help="run folder written by `pporpe train`")
+    ev.add_argument("--episodes", type=int, default=50, help="test episodes (default 50)")
+    ev.add_argument(
+        "--seed",
+        type=_nonneg_int,
+        default=None,
+        help="environment seed (default: training seed + 1000003)",
+    )
+    ev.set_defaults(func=_cmd_evaluate)
+
+    rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
+    rp.add_argument("spec", help="grid spec, e.g. experiments/quick.toml or experiments/paper.toml")
+    rp.add_argument("--out", required=True, help="results folder (re-run to resume)")
+    rp.add_argument(
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
+        help="local process pool (default) or an existing Ray cluster",
+    )
+    rp.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=None,
+        help="local worker processes (default: number of cores)",
+    )
+    rp.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster address HOST:PORT (default: RAY_ADDRESS or a local Ray)",
+    )
+    rp.add_argument("--report", action="store_true", help="write the report when done")
+    rp.add_argument("--quiet", action="store_true", help="no progress bar")
+    rp.set_defaults(func=_cmd_reproduce)
+
+    rep = sub.add_parser("report", help="summary table and figures of a grid's results")
+    rep.add_argument("dir", help="results folder written by `pporpe reproduce`")
+    rep.set_defaults(func=_cmd_report)
     return parser
 
 

@@ -1,0 +1,210 @@
+"""Environment construction for the paper's tasks (PyBullet through Gymnasium).
+
+The paper evaluates on four PyBullet tasks; this module gives them short aliases,
+validates names cheaply (no environment is built) and builds environments with
+the checks the learners rely on: a Box action space (continuous control, the
+policy maps into its bounds) and a 1-D Box observation space.
+
+* :data:`ALIASES` maps the short names ``pendulum``, ``swingup``, ``halfcheetah``
+  and ``ant`` to their Gymnasium ids. Any other registered Gymnasium id with a
+  Box action space works too (e.g. ``Pendulum-v1``).
+* :func:`resolve_env_id` turns an alias or id into a registered id, or raises a
+  :class:`ValueError` that lists the aliases. It only reads
+  ``gymnasium.envs.registry``.
+* :func:`make_env` builds the environment with ``gymnasium.make``. Gymnasium's
+  ``TimeLimit`` wrapper is kept, so ``terminated`` (a true end of the task: do
+  not bootstrap) and ``truncated`` (the step limit, 1000 steps for the Bullet
+  tasks: bootstrap) stay separate.
+* :func:`env_spec_summary` reports dimensions, bounds and the step limit.
+
+The Bullet environments are registered by importing ``pybullet_envs_gymnasium``,
+done lazily here. PyBullet prints a "pybullet build time" banner from C when it is
+first imported (to standard error); :func:`make_env` imports it with the
+process's standard output and error silenced at the file-descriptor level.
+(PyBullet also prints ``argv[0]=`` lines to standard output when an environment
+first connects, on its first ``reset``; those are not silenced.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import importlib
+import os
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+__all__ = ["ALIASES", "env_spec_summary", "make_env", "resolve_env_id"]
+
+ALIASES: dict[str, str] = {
+    "pendulum": "InvertedPendulumBulletEnv-v0",
+    "swingup": "InvertedPendulumSwingupBulletEnv-v0",
+    "halfcheetah": "HalfCheetahBulletEnv-v0",
+    "ant": "AntBulletEnv-v0",
+}
+"""Short names of the paper's four tasks and their Gymnasium ids."""
+
+_BULLET_PACKAGE = "pybullet_envs_gymnasium"
+
+
+def _aliases_text() -> str:
+    """Return the aliases as ``name -> id`` pairs for error messages."""
+    return ", ".join(f"{alias!r} -> {env_id}" for alias, env_id in ALIASES.items())
+
+
+@contextlib.contextmanager
+def _quiet_output() -> Iterator[None]:
+    """Silence the process's standard output and error (descriptors 1 and 2) briefly.
+
+    C libraries write to the descriptors directly, so replacing ``sys.stdout`` is
+    not enough. A stream without a usable descriptor is left alone.
+    """
+    saved: list[tuple[int, int]] = []
+    with contextlib.ExitStack() as stack:
+        devnull = stack.enter_context(open(os.devnull, "w"))
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                fd = stream.fileno()
+            except (AttributeError, OSError, ValueError):
+                continue
+            stream.flush()
+            saved.append((fd, os.dup(fd)))
+            os.dup2(devnull.fileno(), fd)
+        try:
+            yield
+        finally:
+            with contextlib.suppress(Exception):
+                ctypes.CDLL(None).fflush(None)  # drop what C buffered meanwhile
+            for fd, copy in reversed(saved):
+                os.dup2(copy, fd)
+                os.close(copy)
+
+
+def _register_bullet() -> None:
+    """Import ``pybullet_envs_gymnasium`` so that the Bullet ids are registered.
+
+    Registration only; PyBullet itself is imported when an environment is built.
+    A missing package is not an error here: other Gymnasium ids still resolve.
+    """
+    if _BULLET_PACKAGE in sys.modules:
+        return
+    with contextlib.suppress(ImportError):
+        importlib.import_module(_BULLET_PACKAGE)
+
+
+def _import_pybullet_quietly() -> None:
+    """Import ``pybullet`` once with its C banner silenced."""
+    if "pybullet" in sys.modules:
+        return
+    with _quiet_output(), contextlib.suppress(ImportError):
+        importlib.import_module("pybullet")
+
+
+def resolve_env_id(name: str) -> str:
+    """Return the registered Gymnasium id for an alias or an id.
+
+    ``name`` is one of :data:`ALIASES` (case-insensitive) or any id registered
+    with Gymnasium (the Bullet ids are registered here on first use). A
+    ``"module:EnvId"`` name imports ``module`` first, as ``gymnasium.make`` does.
+    No environment is built, so this is cheap enough to validate command lines.
+
+    Raises:
+        ValueError: if the name is neither an alias nor a registered id; the
+            message lists the aliases.
+    """
+    key = name.strip() if isinstance(name, str) else ""
+    key = ALIASES.get(key.lower(), key)
+    if key:
+        _register_bullet()
+        if ":" in key:
+            module, _, key = key.partition(":")
+            with contextlib.suppress(ImportError):
+                importlib.import_module(module)
+        if key in gymnasium.envs.registry:
+            return key
+    raise ValueError(
+        f"unknown environment {name!r}. Use an alias ({_aliases_text()}) or any "
+        "registered Gymnasium id whose action space is a Box (continuous actions), "
+        "e.g. 'Pendulum-v1'."
+    )
+
+
+def make_env(name: str, seed: int | None = None, **kwargs: Any) -> gymnasium.Env:
+    """Build a continuous-control environment by alias or Gymnasium id.
+
+    Args:
+        name: an alias from :data:`ALIASES` or a registered Gymnasium id.
+        seed: if given, seeds the action and observation spaces (their
+            ``sample``). The environment's own generator is seeded by the
+            caller's first ``env.reset(seed=seed)``, as Gymnasium intends.
+        **kwargs: passed to ``gymnasium.make`` (e.g. ``render_mode``,
+            ``max_episode_steps``).
+
+    Returns:
+        The environment as ``gymnasium.make`` returns it, with its ``TimeLimit``
+        wrapper: ``step`` returns ``(obs, reward, terminated, truncated, info)``
+        where ``truncated`` marks the step limit.
+
+    Raises:
+        ValueError: unknown name; an action space that is not a
+            ``gymnasium.spaces.Box`` or not 1-D with finite bounds; an observation
+            space that is not a 1-D Box.
+    """
+    env_id = resolve_env_id(name)
+    entry_point = gymnasium.envs.registry[env_id].entry_point
+    if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
+        _import_pybullet_quietly()
+    env = gymnasium.make(env_id, **kwargs)
+    act_space, obs_space = env.action_space, env.observation_space
+    if not isinstance(act_space, spaces.Box):
+        env.close()
+        raise ValueError(
+            f"environment {env_id!r} has action space {act_space}, but a "
+            f"gymnasium.spaces.Box (continuous actions) is required. Aliases: "
+            f"{_aliases_text()}"
+        )
+    if len(act_space.shape) != 1 or not (
+        np.all(np.isfinite(act_space.low)) and np.all(np.isfinite(act_space.high))
+    ):
+        env.close()
+        raise ValueError(
+            f"environment {env_id!r} has action space {act_space}, but a 1-D Box with "
+            "finite bounds is required (policies map into the bounds)"
+        )
+    if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
+        env.close()
+        raise ValueError(
+            f"environment {env_id!r} has observation space {obs_space}, but a 1-D "
+            "gymnasium.spaces.Box is required"
+        )
+    if seed is not None:
+        act_space.seed(seed)
+        obs_space.seed(seed)
+    return env
+
+
+def env_spec_summary(env: gymnasium.Env) -> dict[str, Any]:
+    """Summarise an environment built by :func:`make_env`.
+
+    Returns:
+        A dict with ``id`` (str or None), ``obs_dim`` and ``act_dim`` (int),
+        ``action_low`` and ``action_high`` (lists of float) and
+        ``max_episode_steps`` (int or None).
+    """
+    act_space, obs_space = env.action_space, env.observation_space
+    if not isinstance(act_space, spaces.Box) or not isinstance(obs_space, spaces.Box):
+        raise ValueError("env_spec_summary needs Box action and observation spaces")
+    spec = env.spec
+    return {
+        "id": spec.id if spec is not None else None,
+        "obs_dim": int(np.prod(obs_space.shape)),
+        "act_dim": int(np.prod(act_space.shape)),
+        "action_low": [float(x) for x in np.asarray(act_space.low).reshape(-1)],
+        "action_high": [float(x) for x in np.asarray(act_space.high).reshape(-1)],
+        "max_episode_steps": spec.max_episode_steps if spec is not None else None,
+    }

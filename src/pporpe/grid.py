@@ -1,0 +1,221 @@
+"""Experiment grids as data: methods x tasks x seeds, read from a TOML spec.
+
+A spec (see ``experiments/paper.toml``)::
+
+    name = "paper"
+    methods = ["ppo", "rb", "rpe"]
+    seeds = 10                 # 0..9, or an explicit list [0, 1, 2]
+    eval_episodes = 50
+    checkpoint_every = 10      # optional
+
+    [learner]                  # optional: any OnlineConfig field, for every run
+    eps = 0.1
+
+    [[tasks]]
+    env = "pendulum"
+    episodes = 200             # or steps = N
+    [tasks.learner]            # optional: overrides for this task only
+    lr = 1e-4
+
+Every run is independent; its folder is ``OUT/<env>/<method>/seed<k>``. A malformed
+spec is rejected before any run starts, naming the file, the field and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .config import OnlineConfig, TrainConfig, config_from_dict
+from .envs import resolve_env_id
+from .surrogates import METHODS
+
+__all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec"]
+
+_TOP_FIELDS = {"name", "methods", "seeds", "eval_episodes", "checkpoint_every", "learner", "tasks"}
+_TASK_FIELDS = {"env", "episodes", "steps", "learner"}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One (method, task, seed) run of a grid."""
+
+    method: str
+    """Surrogate name."""
+    env: str
+    """Task alias or Gymnasium id."""
+    seed: int
+    """Seed."""
+    config: TrainConfig
+    """Full training configuration of the run."""
+
+    @property
+    def key(self) -> str:
+        """Relative folder of the run: ``<env>/<method>/seed<k>``."""
+        return f"{self.env}/{self.method}/seed{self.seed}"
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A parsed, validated grid."""
+
+    name: str
+    """Name of the grid."""
+    runs: tuple[RunSpec, ...]
+    """Every run, ordered task by task, then seed, then method."""
+    source: str
+    """The file it was read from."""
+
+    @property
+    def methods(self) -> list[str]:
+        """Methods in the grid, in spec order."""
+        return list(dict.fromkeys(r.method for r in self.runs))
+
+    @property
+    def envs(self) -> list[str]:
+        """Tasks in the grid, in spec order."""
+        return list(dict.fromkeys(r.env for r in self.runs))
+
+
+def _fail(where: str, field: str, value: Any, allowed: str) -> ValueError:
+    return ValueError(f"{where}: field '{field}' must be {allowed}; got {value!r}")
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
+    """Validate a spec dictionary and expand it into runs (no run is started)."""
+    unknown = sorted(set(data) - _TOP_FIELDS)
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {unknown}; allowed: {sorted(_TOP_FIELDS)}")
+    for required in ("methods", "seeds", "tasks"):
+        if required not in data:
+            raise ValueError(f"{where}: missing field '{required}'")
+    name = data.get("name", Path(where).stem)
+    if not isinstance(name, str):
+        raise _fail(where, "name", name, "a string")
+
+    methods = data["methods"]
+    if not (isinstance(methods, list) and methods and all(m in METHODS for m in methods)):
+        raise _fail(where, "methods", methods, f"a non-empty list drawn from {list(METHODS)}")
+    if len(set(methods)) != len(methods):
+        raise _fail(where, "methods", methods, "a list without repeats")
+
+    seeds_raw = data["seeds"]
+    if _is_int(seeds_raw):
+        if seeds_raw < 1:
+            raise _fail(where, "seeds", seeds_raw, "a positive count or a list of ints >= 0")
+        seeds = list(range(seeds_raw))
+    elif (
+        isinstance(seeds_raw, list)
+        and seeds_raw
+        and all(_is_int(s) and s >= 0 for s in seeds_raw)
+        and len(set(seeds_raw)) == len(seeds_raw)
+    ):
+        seeds = list(seeds_raw)
+    else:
+        raise _fail(
+            where, "seeds", seeds_raw, "a positive count or a non-empty list of distinct ints >= 0"
+        )
+
+    eval_episodes = data.get("eval_episodes", 50)
+    if not (_is_int(eval_episodes) and eval_episodes >= 0):
+        raise _fail(where, "eval_episodes", eval_episodes, "an int >= 0")
+    checkpoint_every = data.get("checkpoint_every", 10)
+    if not (_is_int(checkpoint_every) and checkpoint_every >= 1):
+        raise _fail(where, "checkpoint_every", checkpoint_every, "an int >= 1")
+
+    base_learner = data.get("learner", {})
+    if not isinstance(base_learner, dict):
+        raise _fail(where, "learner", base_learner, "a table of OnlineConfig fields")
+    if "method" in base_learner:
+        raise ValueError(f"{where}: field 'learner.method' is set by 'methods', not by learner")
+
+    tasks = data["tasks"]
+    if not (isinstance(tasks, list) and tasks and all(isinstance(t, dict) for t in tasks)):
+        raise _fail(where, "tasks", tasks, "a non-empty array of tables ([[tasks]])")
+
+    runs: list[RunSpec] = []
+    seen_envs: set[str] = set()
+    for i, task in enumerate(tasks):
+        at = f"{where}: tasks[{i}]"
+        unknown = sorted(set(task) - _TASK_FIELDS)
+        if unknown:
+            raise ValueError(f"{at}: unknown field(s) {unknown}; allowed: {sorted(_TASK_FIELDS)}")
+        env = task.get("env")
+        if not isinstance(env, str):
+            raise ValueError(f"{at}: field 'env' must be a task alias or Gymnasium id; got {env!r}")
+        try:
+            resolve_env_id(env)
+        except ValueError as exc:
+            raise ValueError(f"{at}: field 'env': {exc}") from None
+        if env in seen_envs:
+            raise ValueError(f"{at}: field 'env' repeats {env!r}")
+        seen_envs.add(env)
+        episodes, steps = task.get("episodes"), task.get("steps")
+        if (episodes is None) == (steps is None):
+            raise ValueError(f"{at}: exactly one of the fields 'episodes' and 'steps' must be set")
+        for fname, value in (("episodes", episodes), ("steps", steps)):
+            if value is not None and not (_is_int(value) and value >= 1):
+                raise ValueError(f"{at}: field '{fname}' must be an int >= 1; got {value!r}")
+        task_learner = task.get("learner", {})
+        if not isinstance(task_learner, dict) or "method" in task_learner:
+            raise ValueError(
+                f"{at}: field 'learner' must be a table of OnlineConfig fields other than method"
+            )
+        learners = {
+            method: config_from_dict(
+                OnlineConfig,
+                {**base_learner, **task_learner, "method": method},
+                f"{at}.learner",
+            )
+            for method in methods
+        }
+        for seed in seeds:
+            for method in methods:
+                cfg = TrainConfig(
+                    env=env,
+                    seed=seed,
+                    episodes=episodes,
+                    steps=steps,
+                    checkpoint_every=checkpoint_every,
+                    eval_episodes=eval_episodes,
+                    learner=learners[method],
+                )
+                runs.append(RunSpec(method, env, seed, cfg))
+    return GridSpec(name=name, runs=tuple(runs), source=where)
+
+
+def load_spec(path: str | Path) -> GridSpec:
+    """Read and validate a TOML grid spec."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"grid spec {p} does not exist")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{p}: not valid TOML: {exc}") from None
+    return parse_spec(data, str(p))
+
+
+def spec_summary(spec: GridSpec) -> dict[str, Any]:
+    """A JSON-ready description of the grid (saved beside its results)."""
+    return {
+        "name": spec.name,
+        "source": spec.source,
+        "runs": [
+            {
+                "key": r.key,
+                "method": r.method,
+                "env": r.env,
+                "seed": r.seed,
+                "config": dataclasses.asdict(r.config),
+            }
+            for r in spec.runs
+        ],
+    }

@@ -1,0 +1,137 @@
+"""Fully connected networks as used in the paper (Table 1).
+
+The paper's actor and critic are 5 fully connected layers of 100 units, each
+followed by layer normalisation and Swish (``x * sigmoid(x)``), and a linear
+output layer. :func:`mlp` builds exactly that by default::
+
+    Linear(in_dim, units) -> LayerNorm -> Swish      # hidden block 1
+    ...                                              # `layers` blocks in all
+    Linear(units, out_dim)                           # output
+
+Initialisation (``init``):
+
+* ``"default"`` (default): PyTorch's own initialisation of ``nn.Linear`` and
+  ``nn.LayerNorm``.
+* ``"orthogonal"``: hidden weights orthogonal with the gain suited to the
+  activation (ReLU sqrt(2), tanh 5/3, Swish 1), all biases zero, output weights
+  orthogonal with gain ``output_gain`` (1 when not given).
+
+``output_gain`` (with ``"default"``) multiplies the output layer's weights and
+zeroes its bias; a small value such as 0.01 starts a policy near its
+state-independent centre (``loc`` ~ 0, ``softplus(0)`` scale) and a critic near 0.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["ACTIVATIONS", "INITS", "mlp", "mlp_num_params"]
+
+ACTIVATIONS: tuple[str, ...] = ("swish", "relu", "tanh")
+"""Allowed activation names; ``swish`` is ``x * sigmoid(x)`` (``nn.SiLU``)."""
+
+INITS: tuple[str, ...] = ("default", "orthogonal")
+"""Allowed initialisation schemes of :func:`mlp`."""
+
+_GAINS: dict[str, float] = {"swish": 1.0, "relu": math.sqrt(2.0), "tanh": 5.0 / 3.0}
+
+
+def _check_positive_int(name: str, value: object) -> int:
+    """Return ``value`` if it is a positive int (not a bool), else raise ValueError."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return value
+
+
+def _activation(name: str) -> nn.Module:
+    """Return a fresh activation module for an allowed name."""
+    if name == "swish":
+        return nn.SiLU()
+    if name == "relu":
+        return nn.ReLU()
+    return nn.Tanh()
+
+
+def mlp(
+    in_dim: int,
+    out_dim: int,
+    layers: int = 5,
+    units: int = 100,
+    layer_norm: bool = True,
+    activation: str = "swish",
+    init: str = "default",
+    output_gain: float | None = None,
+) -> nn.Sequential:
+    """Build a multilayer perceptron with ``layers`` hidden blocks.
+
+    Each hidden block is ``Linear(units)`` -> ``LayerNorm(units)`` (if
+    ``layer_norm``) -> activation; a final ``Linear(out_dim)`` follows, with no
+    activation. The defaults are the paper's (5 x 100, LayerNorm, Swish).
+
+    Args:
+        in_dim: input features (positive int).
+        out_dim: output features (positive int).
+        layers: number of hidden blocks (positive int).
+        units: width of every hidden block (positive int).
+        layer_norm: put ``nn.LayerNorm`` after every hidden ``Linear``.
+        activation: one of :data:`ACTIVATIONS` (``"swish"``, ``"relu"``, ``"tanh"``).
+        init: one of :data:`INITS`; see the module docstring.
+        output_gain: scale of the output layer's weights (see module docstring);
+            None leaves ``"default"`` untouched and means gain 1 for ``"orthogonal"``.
+
+    Raises:
+        ValueError: naming the bad parameter and, where relevant, the allowed values.
+    """
+    _check_positive_int("in_dim", in_dim)
+    _check_positive_int("out_dim", out_dim)
+    _check_positive_int("layers", layers)
+    _check_positive_int("units", units)
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
+    if init not in INITS:
+        raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    if output_gain is not None and not (math.isfinite(output_gain) and output_gain >= 0):
+        raise ValueError(f"output_gain must be a finite number >= 0, got {output_gain!r}")
+
+    modules: list[nn.Module] = []
+    hidden: list[nn.Linear] = []
+    width = in_dim
+    for _ in range(layers):
+        linear = nn.Linear(width, units)
+        hidden.append(linear)
+        modules.append(linear)
+        if layer_norm:
+            modules.append(nn.LayerNorm(units))
+        modules.append(_activation(activation))
+        width = units
+    output = nn.Linear(width, out_dim)
+    modules.append(output)
+
+    if init == "orthogonal":
+        for linear in hidden:
+            nn.init.orthogonal_(linear.weight, gain=_GAINS[activation])
+            nn.init.zeros_(linear.bias)
+        nn.init.orthogonal_(output.weight, gain=1.0 if output_gain is None else output_gain)
+        nn.init.zeros_(output.bias)
+    elif output_gain is not None:
+        with torch.no_grad():
+            output.weight.mul_(output_gain)
+            output.bias.zero_()
+    return nn.Sequential(*modules)
+
+
+def mlp_num_params(
+    in_dim: int, out_dim: int, layers: int = 5, units: int = 100, layer_norm: bool = True
+) -> int:
+    """Return the number of trainable parameters of ``mlp`` with these sizes.
+
+    ``(in_dim + 1) * units + (layers - 1) * (units + 1) * units
+    + (units + 1) * out_dim``, plus ``2 * units * layers`` for the LayerNorms.
+    """
+    count = (in_dim + 1) * units + (layers - 1) * (units + 1) * units + (units + 1) * out_dim
+    if layer_norm:
+        count += 2 * units * layers
+    return count
