@@ -1,5 +1,5 @@
 # pporpe: two commands on a fresh machine.
-#   make reproduce   the main job (installs what it needs into .venv first)
+#   make reproduce   the main job: the quick grid + report (installs into .venv first)
 #   make test        lint, type-check and the test suite (installs what it needs first)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
 
@@ -9,7 +9,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip install -c constraints.txt
 OUT    ?= results
 
-.PHONY: reproduce test lint install install-dev bench clean
+.PHONY: reproduce reproduce-paper test lint install install-dev bench clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -18,15 +18,26 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.installed-dev: $(VENV)/.installed
-	$(PIP) --quiet -e ".[dev]"
+	$(PIP) --quiet -e ".[dev,ray]"
 	touch $@
 
 install: $(VENV)/.installed
 install-dev: $(VENV)/.installed-dev
 
-## The main job: the paper's analytic figures into $(OUT)/figures.
+## The main job: the quick grid of the paper's comparison on the local process pool, then
+## its report (summary table and figures), plus the analytic figures, all under $(OUT)/.
+## Re-running resumes: finished runs are skipped, unfinished ones continue from checkpoints.
 reproduce: $(VENV)/.installed
 	$(VENV)/bin/pporpe figures --out $(OUT)/figures
+	$(VENV)/bin/pporpe reproduce experiments/quick.toml --out $(OUT)/quick --report
+
+## The paper's full grid (3 methods x 4 tasks x 10 seeds): days on one machine.
+reproduce-paper: $(VENV)/.installed
+	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report
+
+bench: $(VENV)/.installed
+	$(PY) benchmarks/throughput.py
+	$(PY) benchmarks/learning.py
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check .

@@ -271,3 +271,19 @@ def test_action_map_validation_and_from_space() -> None:
     torch.testing.assert_close(a[-1], odd.high, rtol=0, atol=1e-6)
     # float64 inputs are computed in float64.
     assert amap.to_action(torch.zeros(1, dtype=F64)).dtype == F64
+
+
+@pytest.mark.parametrize("kind", ["student_t", "normal"])
+def test_fast_sample_equals_torch_distributions_sample(kind: str) -> None:
+    """head.sample draws the same numbers as distribution(raw).sample() from the same RNG."""
+    head = make_head(kind, 3)
+    raw = torch.randn(4, head.raw_dim) * 2.0
+    torch.manual_seed(123)
+    expected = head.distribution(raw).sample()
+    after_expected = torch.rand(1)
+    torch.manual_seed(123)
+    got = head.sample(raw)
+    after_got = torch.rand(1)
+    torch.testing.assert_close(got, expected, rtol=0, atol=0)
+    assert torch.equal(after_got, after_expected)  # same amount of RNG consumed
+    assert not got.requires_grad

@@ -265,7 +265,7 @@ class OnlineLearner:
         self.traces.reset_()
         x = self._obs_tensor(obs)
         raw = self._policy_fn(self._pol_views, x)
-        u = self.head.distribution(raw).sample()
+        u = self.head.sample(raw)
         self._obs, self._u = x, u
         self._logp_b = self.head.log_prob(raw, u)
         self._value_b = self._value_fn(self._val_views, x)[:, 0]
@@ -348,7 +348,7 @@ class OnlineLearner:
 
         with torch.no_grad():
             # a_{t+1} is sampled from theta_t, before this update (NOTES.md 2b)
-            u_next = self.head.distribution(raw_next).sample()
+            u_next = self.head.sample(raw_next)
             logp_b_next = self.head.log_prob(raw_next, u_next)
             trace = self.traces.step_(self._grad, divergence)
             upd = self._update_buf

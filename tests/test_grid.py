@@ -1,0 +1,259 @@
+"""Grid specs, the local backend, kill-and-resume for real, and the report."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from pporpe.cli import main
+from pporpe.grid import load_spec, parse_spec
+from pporpe.logger import read_records
+from pporpe.report import mean_ci, write_report
+from pporpe.reproduce import reproduce
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY_SPEC = """
+name = "tiny"
+methods = ["ppo", "rpe"]
+seeds = [0, 1]
+eval_episodes = 2
+checkpoint_every = 1
+
+[learner]
+layers = 1
+units = 8
+
+[[tasks]]
+env = "pendulum"
+episodes = 4
+"""
+
+
+def write_spec(tmp_path: Path, text: str = TINY_SPEC, name: str = "tiny.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def records_of(out: Path, key: str) -> list:
+    return [replace(r, wall_time=0.0) for r in read_records(out / key / "episodes.csv")]
+
+
+# ------------------------------------------------------------------------------------
+# Specs
+# ------------------------------------------------------------------------------------
+def test_repository_specs_parse() -> None:
+    paper = load_spec(ROOT / "experiments" / "paper.toml")
+    assert len(paper.runs) == 3 * 4 * 10
+    assert paper.methods == ["ppo", "rb", "rpe"]
+    assert paper.envs == ["pendulum", "swingup", "halfcheetah", "ant"]
+    by_env = {r.env: r.config for r in paper.runs}
+    assert by_env["pendulum"].episodes == 200 and by_env["ant"].episodes == 2000
+    assert all(r.config.eval_episodes == 50 for r in paper.runs)
+    quick = load_spec(ROOT / "experiments" / "quick.toml")
+    assert set(quick.methods) == {"ppo", "rb", "rpe"} and len(quick.runs) < len(paper.runs)
+
+
+def test_spec_overrides_reach_the_learner(tmp_path: Path) -> None:
+    text = TINY_SPEC + "\n[tasks.learner]\nlr = 0.001\n"
+    spec = load_spec(write_spec(tmp_path, text))
+    assert {r.config.learner.lr for r in spec.runs} == {0.001}
+    assert {r.config.learner.units for r in spec.runs} == {8}
+    assert {r.config.learner.method for r in spec.runs} == {"ppo", "rpe"}
+    assert [r.key for r in spec.runs][:2] == ["pendulum/ppo/seed0", "pendulum/rpe/seed0"]
+
+
+BAD_SPECS = [
+    ('methods = ["ppo", "trpo"]', "methods"),
+    ("seeds = 0", "seeds"),
+    ("seeds = [1, -2]", "seeds"),
+    ('seeds = "3"', "seeds"),
+    ("eval_episodes = -1", "eval_episodes"),
+    ("colour = 3", "unknown field"),
+]
+
+
+@pytest.mark.parametrize(("line", "field"), BAD_SPECS)
+def test_malformed_top_level_fields_are_rejected(tmp_path: Path, line: str, field: str) -> None:
+    key = line.split("=")[0].strip()
+    lines = [ln for ln in TINY_SPEC.splitlines() if not ln.startswith(f"{key} =")]
+    text = line + "\n" + "\n".join(lines)
+    path = write_spec(tmp_path, text)
+    with pytest.raises(ValueError, match=field) as info:
+        load_spec(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("task", "message"),
+    [
+        ('env = "NoSuchEnv-v0"\nepisodes = 3', "pendulum"),
+        ('env = "pendulum"\nepisodes = 0', "episodes"),
+        ('env = "pendulum"\nepisodes = 3\nsteps = 3', "exactly one"),
+        ('env = "pendulum"', "exactly one"),
+        ('env = "pendulum"\nepisodes = 2.5', "episodes"),
+        ('env = "pendulum"\nepisodes = 3\nspeed = 1', "unknown field"),
+        ('env = "pendulum"\nepisodes = 3\n[tasks.learner]\neps = 2.0', "eps"),
+        ('env = "pendulum"\nepisodes = 3\n[tasks.learner]\nwarp = 2.0', "warp"),
+    ],
+)
+def test_malformed_tasks_are_rejected(tmp_path: Path, task: str, message: str) -> None:
+    text = 'methods = ["rpe"]\nseeds = 1\n[[tasks]]\n' + task + "\n"
+    with pytest.raises(ValueError, match=message) as info:
+        load_spec(write_spec(tmp_path, text))
+    assert "tasks[0]" in str(info.value)
+
+
+def test_missing_field_and_bad_toml(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="missing field 'tasks'"):
+        parse_spec({"methods": ["rpe"], "seeds": 1})
+    with pytest.raises(ValueError, match="not valid TOML"):
+        load_spec(write_spec(tmp_path, "methods = [", "bad.toml"))
+
+
+def test_cli_rejects_bad_spec_before_any_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    spec = write_spec(tmp_path, TINY_SPEC.replace('"rpe"]', '"rpe", "sac"]'))
+    out = tmp_path / "out"
+    assert main(["reproduce", str(spec), "--out", str(out), "--quiet"]) == 2
+    assert "methods" in capsys.readouterr().err
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------
+# Local backend, failures, report
+# ------------------------------------------------------------------------------------
+def test_local_backend_runs_grid_and_report(tmp_path: Path) -> None:
+    spec = load_spec(write_spec(tmp_path))
+    out = tmp_path / "out"
+    outcome = reproduce(spec, out, workers=2, progress=False)
+    assert outcome.ok and sorted(outcome.done) == sorted(r.key for r in spec.runs)
+    for run in spec.runs:
+        assert [r.episode for r in read_records(out / run.key / "episodes.csv")] == [0, 1, 2, 3]
+        assert (out / run.key / "evaluation.json").exists()
+    # same seeds in a second folder give the same records; a rerun skips everything
+    again = reproduce(spec, out, workers=1, progress=False)
+    assert sorted(again.skipped) == sorted(outcome.done)
+
+    paths = write_report(out)
+    names = {p.name for p in paths}
+    assert {
+        "summary.md",
+        "summary.csv",
+        "fig_summary.png",
+        "fig_learning.pdf",
+        "fig_regularization.png",
+    } <= names
+    table = (out / "summary.md").read_text()
+    assert "| pendulum | PPO-RPE |" in table and "| pendulum | PPO |" in table
+    scores = [
+        json.loads((out / f"pendulum/ppo/seed{s}/evaluation.json").read_text())["median"]
+        for s in (0, 1)
+    ]
+    mean, lo, hi = mean_ci(scores)
+    assert f"| pendulum | PPO | {mean:.1f} |" in table
+    assert lo <= mean <= hi
+
+
+def test_mean_ci_matches_hand_computation() -> None:
+    mean, lo, hi = mean_ci([1.0, 2.0, 3.0, 4.0])
+    # sd = 1.2910, t(0.975, 3) = 3.1824: half width = 3.1824 * 1.2910 / 2 = 2.0543
+    assert mean == 2.5
+    assert hi - mean == pytest.approx(2.0543, abs=1e-3)
+    assert mean - lo == pytest.approx(2.0543, abs=1e-3)
+
+
+def test_failed_run_leaves_traceback_and_others_continue(tmp_path: Path) -> None:
+    text = TINY_SPEC.replace('env = "pendulum"', 'env = "pporpe-test/Broken-v0"')
+    import gymnasium as gym
+
+    # registered in this process only: its entry point cannot be imported anywhere
+    gym.register("pporpe-test/Broken-v0", entry_point="pporpe_no_such_module:Env")
+    spec = load_spec(write_spec(tmp_path, text))
+    outcome = reproduce(spec, tmp_path / "out", workers=1, backend="local", progress=False)
+    assert len(outcome.failed) == len(spec.runs) and not outcome.ok
+    for key in outcome.failed:
+        assert "Traceback" in (tmp_path / "out" / key / "error.txt").read_text()
+    status = json.loads((tmp_path / "out" / "status.json").read_text())
+    assert sorted(status["failed"]) == sorted(outcome.failed)
+
+
+# ------------------------------------------------------------------------------------
+# Kill (SIGKILL) mid-grid and resume, for real
+# ------------------------------------------------------------------------------------
+KILL_SPEC = """
+name = "killme"
+methods = ["ppo", "rpe"]
+seeds = [0]
+eval_episodes = 1
+checkpoint_every = 2
+
+[learner]
+layers = 1
+units = 8
+
+[[tasks]]
+env = "pendulum"
+episodes = 40
+"""
+
+
+def _launch(spec: Path, out: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pporpe.cli",
+            "reproduce",
+            str(spec),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+            "--quiet",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def test_sigkill_mid_grid_then_resume_gives_complete_identical_records(tmp_path: Path) -> None:
+    spec_path = write_spec(tmp_path, KILL_SPEC, "kill.toml")
+    spec = load_spec(spec_path)
+
+    # reference: an uninterrupted grid
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=2, progress=False).ok
+
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out)
+    deadline = time.monotonic() + 120
+    # wait until some run has a checkpoint but has not finished, then kill everything
+    while time.monotonic() < deadline:
+        ckpts = list(out.glob("pendulum/*/seed0/checkpoint.pt"))
+        if ckpts and not all((c.parent / "done.json").exists() for c in ckpts):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)  # workers die with their parent (PR_SET_PDEATHSIG)
+    unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
+    assert unfinished, "the kill came too late to test resuming"
+
+    proc = _launch(spec_path, out)
+    assert proc.wait(timeout=300) == 0
+    for run in spec.runs:
+        got = records_of(out, run.key)
+        assert [r.episode for r in got] == list(range(40))  # no gap, no duplicate
+        assert got == records_of(ref, run.key)  # and the same numbers as uninterrupted
