@@ -27,6 +27,7 @@ from .io import atomic_savefig
 __all__ = [
     "METHOD_COLORS",
     "METHOD_LABELS",
+    "METHOD_STYLES",
     "draw_analytic_figures",
     "negative_loss_figure",
     "relative_ratio_figure",
@@ -34,6 +35,7 @@ __all__ = [
 
 METHOD_LABELS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
 METHOD_COLORS = {"ppo": "tab:blue", "rb": "tab:green", "rpe": "tab:red"}
+METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-"}  # dashed: identical curves stay visible
 
 
 def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
@@ -105,7 +107,14 @@ def negative_loss_figure(
                 label += rf" ($\eta={eta:g}$)"
             elif method == "rpe":
                 label += rf" ($\beta={beta:g}$)"
-            ax.plot(rho.numpy(), obj.numpy(), color=METHOD_COLORS[method], label=label, lw=2)
+            ax.plot(
+                rho.numpy(),
+                obj.numpy(),
+                color=METHOD_COLORS[method],
+                label=label,
+                lw=2,
+                ls=METHOD_STYLES[method],
+            )
         ax.plot(rho.numpy(), (rho * sign).numpy(), color="0.5", ls=":", lw=1, label=r"$\rho A$")
         ppo_thr = 1.0 + sign * eps
         rpe_thr = high if sign > 0 else low

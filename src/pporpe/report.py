@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy import stats
 
-from .figures import METHOD_COLORS, METHOD_LABELS
+from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
 from .io import atomic_savefig, atomic_write_text
 from .logger import EpisodeRecord, read_records
 
@@ -184,6 +184,7 @@ def _curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth
                 x,
                 mean,
                 color=color,
+                ls=METHOD_STYLES.get(c.method, "-"),
                 lw=1.6,
                 label=f"{METHOD_LABELS.get(c.method, c.method)} (n={len(curves)})",
             )
