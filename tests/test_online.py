@@ -90,10 +90,10 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
     assert learner._obs is not None and learner._u is not None and learner._logp_b is not None
     obs_t, u_t, logp_b = learner._obs, learner._u, learner._logp_b
     theta = learner.theta.detach().clone().requires_grad_(True)
-    from pporpe.online import _views
+    from pporpe.networks import flat_views
 
-    pol = _views(theta[: learner.n_policy], learner._pol_shapes)
-    val = _views(theta[learner.n_policy :], learner._val_shapes)
+    pol = flat_views(theta[: learner.n_policy], learner._pol_shapes)
+    val = flat_views(theta[learner.n_policy :], learner._val_shapes)
     r, next_obs, term, trunc = trans[1]
     x1 = torch.as_tensor(next_obs).reshape(1, 3)
     v = learner._value_fn(val, obs_t)[0, 0]

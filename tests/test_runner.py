@@ -204,3 +204,47 @@ def test_cli_evaluate_rejects_non_run_folder(
 ) -> None:
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "not a run folder" in capsys.readouterr().err
+
+
+def test_cli_train_batch_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "batch"
+    code = main(
+        [
+            "train",
+            "--learner",
+            "batch",
+            "--method",
+            "rpe",
+            "--env",
+            "pendulum",
+            "--steps",
+            "256",
+            "--n-envs",
+            "1",
+            "--n-steps",
+            "128",
+            "--batch-size",
+            "64",
+            "--n-epochs",
+            "2",
+            "--out",
+            str(run),
+            "--eval-episodes",
+            "0",
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    assert "trained 256 steps (2 updates" in capsys.readouterr().out
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["learner"] == "batch" and saved["method"] == "rpe" and saved["n_steps"] == 128
+    assert main(["evaluate", str(run), "--episodes", "2"]) == 0
+    ev = json.loads((run / "evaluation.json").read_text())
+    assert ev["episodes"] == 2 and len(ev["returns"]) == 2
+    assert f"median {ev['median']:.2f}" in capsys.readouterr().out
+
+
+def test_cli_batch_rejects_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "never"
+    assert main(["train", "--learner", "batch", "--episodes", "3", "--out", str(out)]) == 2
+    assert "--steps" in capsys.readouterr().err and not out.exists()

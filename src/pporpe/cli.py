@@ -29,6 +29,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .config import OnlineConfig, TrainConfig
     from .envs import resolve_env_id
 
+    if args.learner == "batch":
+        return _cmd_train_batch(args)
+
     # validate everything before any environment is built
     learner = OnlineConfig(**_learner_overrides(args))  # type: ignore[arg-type]
     cfg = TrainConfig(
@@ -57,6 +60,55 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+_BATCH_ARGS = {
+    "method": "method",
+    "eps": "eps",
+    "beta": "beta",
+    "eta": "eta",
+    "gamma": "gamma",
+    "lr": "lr",
+    "policy": "policy",
+    "rpe_form": "rpe_form",
+    "steps": "total_steps",
+    "n_envs": "n_envs",
+    "n_steps": "n_steps",
+    "batch_size": "batch_size",
+    "n_epochs": "n_epochs",
+    "vec_env": "vec_env",
+    "checkpoint_every": "checkpoint_every",
+    "eval_episodes": "eval_episodes",
+}
+
+
+def _cmd_train_batch(args: argparse.Namespace) -> int:
+    from .batch import train_batch, zoo_config
+    from .envs import resolve_env_id
+
+    if args.episodes is not None:
+        raise ValueError("--learner batch trains for --steps (environment steps), not --episodes")
+    if args.compile:
+        raise ValueError("--compile applies to the online learner only")
+    overrides = {
+        field: getattr(args, arg)
+        for arg, field in _BATCH_ARGS.items()
+        if getattr(args, arg, None) is not None
+    }
+    # per-task defaults (rl-baselines3-zoo where it has the task), then the given options;
+    # validated before any environment is built
+    cfg = zoo_config(args.env, seed=args.seed, **overrides)
+    resolve_env_id(cfg.env)
+    result = train_batch(cfg, args.out, progress=not args.quiet)
+    print(
+        f"trained {result.total_steps} steps ({result.updates} updates, "
+        f"{len(result.records)} episodes) in {result.train_time:.1f} s "
+        f"({result.total_steps / max(result.train_time, 1e-9):.0f} steps/s)"
+    )
+    if result.evaluation is not None:
+        _print_eval(result.evaluation)
+    print(f"run folder: {result.run_dir}")
+    return 0
+
+
 def _print_eval(ev: object) -> None:
     from .evaluation import EvalResult
 
@@ -70,15 +122,26 @@ def _print_eval(ev: object) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1; got {args.episodes}")
+    import json
     from pathlib import Path
 
     from .evaluation import EVAL_SEED_OFFSET, evaluate_policy
     from .io import atomic_write_json
-    from .runner import load_learner
 
-    cfg, learner = load_learner(args.run_dir)
-    seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
-    ev = evaluate_policy(learner.act_deterministic, cfg.env, args.episodes, seed)
+    config_path = Path(args.run_dir) / "config.json"
+    kind = json.loads(config_path.read_text()).get("learner") if config_path.exists() else None
+    if kind == "batch":
+        from .batch import load_batch_learner
+
+        bcfg, blearner = load_batch_learner(args.run_dir)
+        env, seed, act = bcfg.env, bcfg.seed, blearner.act_deterministic
+    else:
+        from .runner import load_learner
+
+        cfg, learner = load_learner(args.run_dir)
+        env, seed, act = cfg.env, cfg.seed, learner.act_deterministic
+    seed = seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
+    ev = evaluate_policy(act, env, args.episodes, seed)
     out = Path(args.run_dir) / "evaluation.json"
     atomic_write_json(out, {**ev.to_dict(), "seed": seed})
     _print_eval(ev)
@@ -160,7 +223,13 @@ def build_parser() -> argparse.ArgumentParser:
     fig.add_argument("--eta", type=float, default=0.3, help="PPO-RB rollback eta >= 0")
     fig.set_defaults(func=_cmd_figures)
 
-    tr = sub.add_parser("train", help="train the paper's online learner on one task")
+    tr = sub.add_parser("train", help="train on one task: the paper's online learner or batch PPO")
+    tr.add_argument(
+        "--learner",
+        choices=["online", "batch"],
+        default="online",
+        help="online (the paper's Alg. 1, default) or batch (rollouts + minibatch epochs)",
+    )
     tr.add_argument(
         "--method", choices=["ppo", "rb", "rpe"], default="rpe", help="surrogate (default rpe)"
     )
@@ -172,7 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--seed", type=_nonneg_int, default=0, help="seed (int >= 0)")
     length = tr.add_mutually_exclusive_group()
     length.add_argument("--episodes", type=_positive_int, help="training episodes (default 200)")
-    length.add_argument("--steps", type=_positive_int, help="training environment steps")
+    length.add_argument(
+        "--steps", type=_positive_int, help="training environment steps (batch: default per task)"
+    )
     tr.add_argument("--out", required=True, help="run folder (resumes if it holds a checkpoint)")
     tr.add_argument("--eps", type=float, help="threshold eps in (0, 1) (default 0.1)")
     tr.add_argument("--beta", type=float, help="RPE beta in [0, 1] (default 0.5)")
@@ -196,7 +267,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--checkpoint-every",
         type=_positive_int,
         default=10,
-        help="episodes between checkpoints (default 10)",
+        help="episodes (online) or updates (batch) between checkpoints (default 10)",
+    )
+    tr.add_argument(
+        "--n-envs", dest="n_envs", type=_positive_int, help="batch: parallel environments"
+    )
+    tr.add_argument(
+        "--n-steps", dest="n_steps", type=_positive_int, help="batch: rollout steps per environment"
+    )
+    tr.add_argument(
+        "--batch-size", dest="batch_size", type=_positive_int, help="batch: minibatch size"
+    )
+    tr.add_argument(
+        "--n-epochs", dest="n_epochs", type=_positive_int, help="batch: epochs per update"
+    )
+    tr.add_argument(
+        "--vec-env",
+        dest="vec_env",
+        choices=["sync", "async"],
+        help="batch: vector environment kind",
     )
     tr.add_argument(
         "--eval-episodes",

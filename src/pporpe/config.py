@@ -21,6 +21,7 @@ __all__ = [
     "TrainConfig",
     "config_from_dict",
     "config_to_dict",
+    "validate_surrogate_fields",
 ]
 
 PolicyKind = Literal["student_t", "normal"]
@@ -38,6 +39,25 @@ def _is_num(x: object) -> bool:
 
 def _is_int(x: object) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
+
+
+def validate_surrogate_fields(cfg: Any) -> None:
+    """Validate the surrogate fields every learner config has: method, eps, beta, eta, rpe_form.
+
+    Raises ``ValueError`` naming the field, its value and the allowed range. ``beta`` and
+    ``eta`` are range-checked even for the methods that ignore them, so a typo is caught.
+    """
+    _require(cfg.method in METHODS, "method", cfg.method, f"one of {list(METHODS)}")
+    for name in ("eps", "beta", "eta"):
+        _require(_is_num(getattr(cfg, name)), name, getattr(cfg, name), "a number")
+    check_surrogate_params(cfg.method, cfg.eps, cfg.beta, cfg.eta)
+    if cfg.method != "rpe":
+        _require(0.0 <= cfg.beta <= 1.0, "beta", cfg.beta, "in [0, 1]")
+    if cfg.method != "rb":
+        _require(0.0 <= cfg.eta < math.inf, "eta", cfg.eta, "a finite number >= 0")
+    _require(
+        cfg.rpe_form in ("derived", "printed"), "rpe_form", cfg.rpe_form, "'derived' or 'printed'"
+    )
 
 
 @dataclass(frozen=True)
@@ -98,20 +118,9 @@ class OnlineConfig:
     """Compile the per-step network computation with ``torch.compile`` (faster after warm-up)."""
 
     def __post_init__(self) -> None:
-        _require(self.method in METHODS, "method", self.method, f"one of {list(METHODS)}")
-        for name in ("eps", "beta", "eta", "gamma", "lr", "opt_eps", "k_dof", "tau", "nu"):
+        validate_surrogate_fields(self)
+        for name in ("gamma", "lr", "opt_eps", "k_dof", "tau", "nu"):
             _require(_is_num(getattr(self, name)), name, getattr(self, name), "a number")
-        check_surrogate_params(self.method, self.eps, self.beta, self.eta)
-        if self.method != "rpe":  # beta unused, but a typo should still be caught
-            _require(0.0 <= self.beta <= 1.0, "beta", self.beta, "in [0, 1]")
-        if self.method != "rb":
-            _require(0.0 <= self.eta < math.inf, "eta", self.eta, "a finite number >= 0")
-        _require(
-            self.rpe_form in ("derived", "printed"),
-            "rpe_form",
-            self.rpe_form,
-            "'derived' or 'printed'",
-        )
         _require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
         _require(0.0 < self.lr < math.inf, "lr", self.lr, "a finite number > 0")
         _require(

@@ -24,11 +24,12 @@ state-independent centre (``loc`` ~ 0, ``softplus(0)`` scale) and a critic near 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import nn
 
-__all__ = ["ACTIVATIONS", "INITS", "mlp", "mlp_num_params"]
+__all__ = ["ACTIVATIONS", "INITS", "flat_views", "mlp", "mlp_num_params"]
 
 ACTIVATIONS: tuple[str, ...] = ("swish", "relu", "tanh")
 """Allowed activation names; ``swish`` is ``x * sigmoid(x)`` (``nn.SiLU``)."""
@@ -135,3 +136,19 @@ def mlp_num_params(
     if layer_norm:
         count += 2 * units * layers
     return count
+
+
+def flat_views(flat: torch.Tensor, shapes: Sequence[torch.Size]) -> list[torch.Tensor]:
+    """Consecutive views of a 1-D tensor with the given shapes (no copy).
+
+    The learners keep all parameters of their networks in one flat tensor; these views
+    are the per-layer weights that the networks are evaluated with.
+    """
+    out, offset = [], 0
+    for shape in shapes:
+        n = math.prod(shape)
+        out.append(flat[offset : offset + n].view(shape))
+        offset += n
+    if offset != flat.numel():
+        raise ValueError(f"shapes cover {offset} elements but the tensor has {flat.numel()}")
+    return out

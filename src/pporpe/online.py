@@ -41,7 +41,6 @@ traces, the optimiser and the target update are a handful of whole-vector operat
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -51,7 +50,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .config import OnlineConfig
-from .networks import mlp
+from .networks import flat_views, mlp
 from .optim import TDAmsProp
 from .policies import ActionMap, PolicyHead, make_head
 from .surrogates import surrogate_objective
@@ -129,15 +128,6 @@ class FlatMLP:
             else:
                 x = op.act(x)
         return x
-
-
-def _views(flat: Tensor, shapes: list[torch.Size]) -> list[Tensor]:
-    out, offset = [], 0
-    for shape in shapes:
-        n = math.prod(shape)
-        out.append(flat[offset : offset + n].view(shape))
-        offset += n
-    return out
 
 
 # ------------------------------------------------------------------------------------
@@ -221,14 +211,14 @@ class OnlineLearner:
 
     # -- parameter views ---------------------------------------------------------------
     def _make_views(self) -> None:
-        leaves = _views(self.theta, self._pol_shapes + self._val_shapes)
-        grads = _views(self._grad, self._pol_shapes + self._val_shapes)
+        leaves = flat_views(self.theta, self._pol_shapes + self._val_shapes)
+        grads = flat_views(self._grad, self._pol_shapes + self._val_shapes)
         for leaf, grad in zip(leaves, grads, strict=True):
             leaf.requires_grad_(True)
             leaf.grad = grad
         k = len(self._pol_shapes)
         self._pol_views, self._val_views = leaves[:k], leaves[k:]
-        self._tgt_views = _views(self.target, self._val_shapes)
+        self._tgt_views = flat_views(self.target, self._val_shapes)
 
     def _reset_pending(self) -> None:
         self._obs: Tensor | None = None  # s_t as a [1, obs_dim] tensor

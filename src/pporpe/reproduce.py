@@ -90,14 +90,23 @@ def run_one(run_dir: str, cfg_dict: dict[str, Any]) -> dict[str, Any]:
         }
 
 
-def _die_with_parent() -> None:
-    """Pool initializer: the worker gets SIGKILL when the parent process dies (Linux)."""
+def _worker_init() -> None:
+    """Pool initializer: die with the parent, and keep C-level chatter off the terminal.
+
+    The worker gets SIGKILL when the parent process dies (Linux). Its standard output
+    goes to /dev/null at the descriptor level (PyBullet prints from C on every
+    connection); tracebacks of failed runs are still written to their ``error.txt``.
+    """
     if sys.platform.startswith("linux"):
         import ctypes
 
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    with contextlib.suppress(OSError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
 
 
 class _Progress:
@@ -127,9 +136,7 @@ def _run_local(
 ) -> list[dict[str, Any]]:
     results: list[dict[str, Any]] = []
     ctx = get_context("spawn")
-    with ProcessPoolExecutor(
-        max_workers=workers, mp_context=ctx, initializer=_die_with_parent
-    ) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
         pending: set[Future[dict[str, Any]]] = {pool.submit(run_one, d, c) for d, c in jobs}
         progress.update(running=min(workers, len(pending)))
         while pending:

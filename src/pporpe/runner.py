@@ -36,7 +36,7 @@ from .logger import EpisodeRecord, RunLogger, read_records
 from .online import OnlineLearner
 from .surrogates import regularization_amount
 
-__all__ = ["NonFiniteError", "TrainResult", "load_learner", "train"]
+__all__ = ["NonFiniteError", "TrainResult", "load_learner", "open_run_dir", "train"]
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -64,13 +64,23 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         torch.save(state, tmp)
 
 
-def _check_config_matches(run_dir: Path, cfg: TrainConfig) -> None:
-    saved = json.loads((run_dir / "config.json").read_text())
-    if saved != config_to_dict(cfg):
+def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, bool]:
+    """Create a run folder and write ``config.json`` first, or check that it matches.
+
+    Returns the folder and whether the run is complete (``done.json`` exists). A folder
+    that holds a run with a different config is refused, so results are never mixed.
+    """
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    path = run / "config.json"
+    if not path.exists():
+        atomic_write_json(path, config)
+    elif json.loads(path.read_text()) != config:
         raise ValueError(
-            f"{run_dir} holds a run with a different config; use another --out folder "
+            f"{run} holds a run with a different config; use another --out folder "
             "or delete it to start over"
         )
+    return run, (run / "done.json").exists()
 
 
 def episode_diagnostics(step_stats: torch.Tensor, learner: OnlineConfig) -> dict[str, float]:
@@ -127,14 +137,8 @@ def train(
     ``on_episode`` is called after every episode (for example by a grid's progress bar).
     """
     resolve_env_id(cfg.env)  # bad env names fail before anything is built or written
-    run = Path(run_dir)
-    run.mkdir(parents=True, exist_ok=True)
-    if (run / "config.json").exists():
-        _check_config_matches(run, cfg)
-    else:
-        atomic_write_json(run / "config.json", config_to_dict(cfg))
-
-    if (run / "done.json").exists():
+    run, done = open_run_dir(run_dir, config_to_dict(cfg))
+    if done:
         return _finished_result(run)
 
     torch.set_num_threads(1)
