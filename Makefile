@@ -35,9 +35,12 @@ reproduce: $(VENV)/.installed
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report
 
+## Benchmarks (long): throughput, learning quality, and the batch trainer against SB3.
 bench: $(VENV)/.installed
+	$(PIP) --quiet -e ".[bench]"
 	$(PY) benchmarks/throughput.py
 	$(PY) benchmarks/learning.py
+	$(PY) benchmarks/vs_sb3.py
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check .
