@@ -72,11 +72,13 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 from torch import Tensor
 
 from .config import (
+    Activation,
     _is_int,
     _is_num,
     _require,
     config_from_dict,
     config_to_dict,
+    validate_network_fields,
     validate_surrogate_fields,
 )
 from .envs import ALIASES, make_env, resolve_env_id
@@ -116,7 +118,6 @@ ActionBound = Literal["clip", "map"]
 AdvNorm = Literal["minibatch", "batch", "none"]
 LRSchedule = Literal["constant", "linear"]
 VecEnvKind = Literal["sync", "async"]
-Activation = Literal["swish", "relu", "tanh"]
 Init = Literal["default", "orthogonal"]
 VecEnv = SyncVectorEnv | AsyncVectorEnv
 
@@ -305,14 +306,7 @@ class BatchConfig:
             self.action_bound,
             "'clip' or 'map'",
         )
-        _require(_is_int(self.layers) and self.layers >= 1, "layers", self.layers, "an int >= 1")
-        _require(_is_int(self.units) and self.units >= 1, "units", self.units, "an int >= 1")
-        _require(
-            self.activation in get_args(Activation),
-            "activation",
-            self.activation,
-            f"one of {list(get_args(Activation))}",
-        )
+        validate_network_fields(self)
         _require(self.init in get_args(Init), "init", self.init, "'default' or 'orthogonal'")
 
     @property

@@ -17,10 +17,12 @@ from typing import Any, Literal, TypeVar, get_args
 from .surrogates import METHODS, Method, RPEForm, check_surrogate_params
 
 __all__ = [
+    "Activation",
     "OnlineConfig",
     "TrainConfig",
     "config_from_dict",
     "config_to_dict",
+    "validate_network_fields",
     "validate_surrogate_fields",
 ]
 
@@ -57,6 +59,18 @@ def validate_surrogate_fields(cfg: Any) -> None:
         _require(0.0 <= cfg.eta < math.inf, "eta", cfg.eta, "a finite number >= 0")
     _require(
         cfg.rpe_form in ("derived", "printed"), "rpe_form", cfg.rpe_form, "'derived' or 'printed'"
+    )
+
+
+def validate_network_fields(cfg: Any) -> None:
+    """Validate the network fields the learner configs share: layers, units, activation."""
+    _require(_is_int(cfg.layers) and cfg.layers >= 1, "layers", cfg.layers, "an int >= 1")
+    _require(_is_int(cfg.units) and cfg.units >= 1, "units", cfg.units, "an int >= 1")
+    _require(
+        cfg.activation in get_args(Activation),
+        "activation",
+        cfg.activation,
+        f"one of {list(get_args(Activation))}",
     )
 
 
@@ -161,14 +175,7 @@ class OnlineConfig:
             self.reward_scale,
             "None or a finite number > 0",
         )
-        _require(_is_int(self.layers) and self.layers >= 1, "layers", self.layers, "an int >= 1")
-        _require(_is_int(self.units) and self.units >= 1, "units", self.units, "an int >= 1")
-        _require(
-            self.activation in get_args(Activation),
-            "activation",
-            self.activation,
-            f"one of {list(get_args(Activation))}",
-        )
+        validate_network_fields(self)
         _require(
             self.policy in get_args(PolicyKind),
             "policy",
