@@ -9,7 +9,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip install -c constraints.txt
 OUT    ?= results
 
-.PHONY: reproduce reproduce-paper test lint install install-dev bench clean
+.PHONY: reproduce reproduce-paper test lint install install-dev bench bench-sb3 clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -36,11 +36,14 @@ reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report
 
 ## Benchmarks (long): throughput, learning quality, and the batch trainer against SB3.
-bench: $(VENV)/.installed
-	$(PIP) --quiet -e ".[bench]"
-	$(PY) benchmarks/throughput.py
+bench: bench-sb3
+	$(PY) benchmarks/throughput.py --compile --breakdown
 	$(PY) benchmarks/learning.py
-	$(PY) benchmarks/vs_sb3.py
+
+## The batch trainer against Stable-Baselines3's PPO (installs SB3 for this only), ~20 min.
+bench-sb3: $(VENV)/.installed
+	$(PIP) --quiet -e ".[bench]"
+	$(PY) benchmarks/vs_sb3.py $(ARGS)
 
 lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check .

@@ -9,7 +9,8 @@ Rounds alternate the two so that machine noise hits both alike; the table report
 medians over rounds, the ratio training/raw, and the learner's own cost per step
 (1/train - 1/raw) next to the environment's (1/raw).
 
-    python benchmarks/throughput.py [--steps 3000] [--rounds 3] [--compile] [--out FILE]
+    python benchmarks/throughput.py [--steps 3000] [--rounds 3] [--compile] [--breakdown]
+                                    [--out FILE]
 """
 
 from __future__ import annotations
@@ -70,15 +71,83 @@ def train_steps_per_s(
     return steps / dt
 
 
+def breakdown(repeats: int = 500) -> dict[str, float]:
+    """Microseconds per call of each part of one online step (InvertedPendulum sizes)."""
+    torch.manual_seed(0)
+    learner = OnlineLearner(5, -np.ones(1), np.ones(1), OnlineConfig())
+    obs = np.random.default_rng(0).normal(size=(1000, 5)).astype(np.float32)
+    learner.begin_episode(obs[0])
+    for i in range(100):
+        learner.step(0.1, obs[i], False, False)
+    assert learner._obs is not None and learner._u is not None
+    x = torch.cat([learner._obs, torch.as_tensor(obs[5]).reshape(1, 5)])
+    scalars = torch.tensor([0.1, 0.99])
+
+    def loss() -> tuple[torch.Tensor, ...]:
+        return learner._loss_fn(
+            learner._pol_views,
+            learner._val_views,
+            learner._tgt_views,
+            x,
+            learner._u,
+            learner._logp_b,
+            learner._value_b,
+            scalars[0],
+            scalars[1],
+        )
+
+    def forward_backward() -> None:
+        out = loss()
+        learner._grad.zero_()
+        out[0].backward()
+
+    raw = torch.randn(1, learner.head.raw_dim)
+    u = learner.head.sample(raw)
+    div = torch.tensor(0.01)
+    parts = {
+        "forward + loss": loss,
+        "forward + loss + backward": forward_backward,
+        "sample (head.sample)": lambda: learner.head.sample(raw),
+        "sample (torch.distributions)": lambda: learner.head.distribution(raw).sample(),
+        "head log_prob": lambda: learner.head.log_prob(raw, u),
+        "traces.step_": lambda: learner.traces.step_(learner._grad, div),
+        "optimizer.step": learner.optimizer.step,
+        "tsoft.update_": lambda: learner.tsoft.update_(
+            learner.target, learner.theta[learner.n_policy :]
+        ),
+        "full learner.step": lambda: learner.step(0.1, obs[7], False, False),
+    }
+    out = {}
+    for name, fn in parts.items():
+        for _ in range(20):
+            fn()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        out[name] = (time.perf_counter() - t0) / repeats * 1e6
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=["pendulum", "halfcheetah"])
     parser.add_argument("--steps", type=int, default=3000, help="timed steps per measurement")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds")
     parser.add_argument("--compile", action="store_true", help="also measure compile=True")
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also time each part of one online step (microseconds per call)",
+    )
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    parts = breakdown() if args.breakdown else None
+    if parts is not None:
+        print(f"{'part of one online step':32s} {'us/call':>9s}")
+        for name, us in parts.items():
+            print(f"{name:32s} {us:9.1f}")
+        print()
 
     variants = {"eager": OnlineConfig()}
     if args.compile:
@@ -124,7 +193,9 @@ def main() -> None:
             f"{row['env_ms_per_step']:8.3f} {row['learner_ms_per_step']:11.3f} "
             f"{tgt if tgt is not None else float('nan'):9.0f}"
         )
-    path = write_json(args.out, {"steps": args.steps, "rounds": args.rounds, "rows": rows})
+    path = write_json(
+        args.out, {"steps": args.steps, "rounds": args.rounds, "rows": rows, "breakdown_us": parts}
+    )
     print(f"wrote {path}")
     np.set_printoptions()
 
