@@ -129,8 +129,8 @@ class OnlineConfig:
     policy: PolicyKind = "student_t"
     """Policy distribution: diagonal ``"student_t"`` (paper) or ``"normal"``."""
     compile: bool = False
-    """Compile the forward pass and loss with ``torch.compile`` (about 10% faster on a 2-core CPU
-    after a warm-up of tens of seconds; see docs/online-learner.md)."""
+    """Compile the forward pass and loss with ``torch.compile`` (5-30% faster on a 2-core CPU
+    after a compile of tens of seconds; see docs/online-learner.md)."""
 
     def __post_init__(self) -> None:
         validate_surrogate_fields(self)
