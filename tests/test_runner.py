@@ -248,3 +248,18 @@ def test_cli_batch_rejects_episodes(tmp_path: Path, capsys: pytest.CaptureFixtur
     out = tmp_path / "never"
     assert main(["train", "--learner", "batch", "--episodes", "3", "--out", str(out)]) == 2
     assert "--steps" in capsys.readouterr().err and not out.exists()
+
+
+def test_cli_evaluate_rejects_non_positive_episodes(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["evaluate", "some/run", "--episodes", "0"])
+    assert info.value.code == 2
+    assert "--episodes" in capsys.readouterr().err
+
+
+def test_load_evaluation_reads_what_train_saved(tmp_path: Path) -> None:
+    from pporpe.evaluation import load_evaluation
+
+    result = train(cfg(episodes=2), tmp_path, progress=False)
+    assert load_evaluation(tmp_path) == result.evaluation
+    assert load_evaluation(tmp_path / "missing") is None

@@ -56,6 +56,7 @@ the replayed state. A killed run loses at most the updates since its last checkp
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import time
@@ -82,12 +83,13 @@ from .config import (
     validate_surrogate_fields,
 )
 from .envs import ALIASES, make_env, resolve_env_id
-from .evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, summarize_returns
-from .io import atomic_path, atomic_write_json
+from .evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
+from .io import atomic_write_json
 from .logger import EpisodeRecord, RunLogger, read_records
 from .networks import flat_views, mlp
 from .online import FlatMLP
 from .policies import ActionMap, NormalHead, PolicyHead, make_head
+from .runner import CHECKPOINT, NonFiniteError, open_run_dir, save_checkpoint
 from .surrogates import Method, RPEForm, regularization_amount
 from .surrogates import surrogate_objective as _surrogate_objective
 
@@ -108,9 +110,6 @@ __all__ = [
     "train_batch",
     "zoo_config",
 ]
-
-CHECKPOINT = "checkpoint.pt"
-"""Name of the checkpoint file in a run folder (the same as :mod:`pporpe.runner`)."""
 
 PolicyKind = Literal["normal", "student_t"]
 ScaleMode = Literal["global", "state"]
@@ -882,8 +881,6 @@ class BatchLearner:
             done = term | trunc
             reward = np.asarray(reward, dtype=np.float64)
             if not (np.all(np.isfinite(reward)) and np.all(np.isfinite(raw_next))):
-                from .runner import NonFiniteError
-
                 raise NonFiniteError(f"non-finite reward or observation at step {self.total_steps}")
             self.total_steps += cfg.n_envs
             self.ep_ret += reward
@@ -1242,7 +1239,7 @@ def load_batch_learner(
     data.pop("learner", None)
     cfg = config_from_dict(BatchConfig, data, str(run / "config.json"))
     state = torch.load(run / CHECKPOINT, weights_only=False)
-    envs_cfg = cfg if build_envs else _replace(cfg, n_envs=1, batch_size=1)
+    envs_cfg = cfg if build_envs else dataclasses.replace(cfg, n_envs=1, batch_size=1)
     learner = BatchLearner(envs_cfg)
     learner.cfg = cfg
     if build_envs:
@@ -1254,17 +1251,8 @@ def load_batch_learner(
     return cfg, learner
 
 
-def _replace(cfg: BatchConfig, **kw: Any) -> BatchConfig:
-    import dataclasses
-
-    return dataclasses.replace(cfg, **kw)
-
-
 def _finished_result(run: Path) -> BatchResult:
-    ev = run / "evaluation.json"
-    evaluation = None
-    if ev.exists():
-        evaluation = summarize_returns(json.loads(ev.read_text())["returns"])
+    evaluation = load_evaluation(run)
     done = json.loads((run / "done.json").read_text())
     records = read_records(run / "episodes.csv")
     return BatchResult(
@@ -1297,8 +1285,6 @@ def train_batch(
     evaluations during training) with the training seconds so far; its own time is not
     counted in ``train_time`` or the records' ``wall_time``.
     """
-    from .runner import NonFiniteError, open_run_dir
-
     resolve_env_id(cfg.env)  # bad env names fail before anything is built or written
     run, done = open_run_dir(run_dir, _config_json(cfg))
     if done:
@@ -1347,8 +1333,7 @@ def train_batch(
             "wall_time": train_time(),
             "torch_rng": torch.get_rng_state(),
         }
-        with atomic_path(ckpt_path) as tmp:
-            torch.save(state, tmp)
+        save_checkpoint(ckpt_path, state)
         log.logger.write_records(records)
 
     last: dict[str, float] = {}

@@ -120,8 +120,6 @@ def _print_eval(ev: object) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    if args.episodes < 1:
-        raise ValueError(f"--episodes must be >= 1; got {args.episodes}")
     import json
     from pathlib import Path
 
@@ -154,8 +152,6 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     from .reproduce import reproduce
 
     spec = load_spec(args.spec)  # every run is validated before any starts
-    if args.backend != "ray" and args.address is not None:
-        raise ValueError("--address is only for --backend ray")
     print(
         f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
         f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
@@ -298,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("evaluate", help="test a trained run: median, mean and IQR of returns")
     ev.add_argument("run_dir", help="run folder written by `pporpe train`")
-    ev.add_argument("--episodes", type=int, default=50, help="test episodes (default 50)")
+    ev.add_argument("--episodes", type=_positive_int, default=50, help="test episodes (default 50)")
     ev.add_argument(
         "--seed",
         type=_nonneg_int,

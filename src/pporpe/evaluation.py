@@ -6,15 +6,23 @@ with the policy's location (no sampling).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .envs import make_env
 
-__all__ = ["EVAL_SEED_OFFSET", "EvalResult", "evaluate_policy", "summarize_returns"]
+__all__ = [
+    "EVAL_SEED_OFFSET",
+    "EvalResult",
+    "evaluate_policy",
+    "load_evaluation",
+    "summarize_returns",
+]
 
 EVAL_SEED_OFFSET = 1_000_003
 """Test episodes of a run with seed s use environment seed s + EVAL_SEED_OFFSET, apart from
@@ -62,6 +70,14 @@ def summarize_returns(returns: list[float]) -> EvalResult:
         float(q75),
         [float(r) for r in returns],
     )
+
+
+def load_evaluation(run_dir: str | Path) -> EvalResult | None:
+    """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one."""
+    path = Path(run_dir) / "evaluation.json"
+    if not path.exists():
+        return None
+    return summarize_returns(json.loads(path.read_text())["returns"])
 
 
 def evaluate_policy(

@@ -178,7 +178,6 @@ class OnlineLearner:
         self._pol_shapes = [p.shape for p in pol_params]
         self._val_shapes = [p.shape for p in val_params]
         self.n_policy = sum(p.numel() for p in pol_params)
-        self.n_value = sum(p.numel() for p in val_params)
 
         # One flat tensor holds every trainable parameter (policy block first). The
         # networks see leaf tensors that are views into it, and their .grad are views into

@@ -30,13 +30,21 @@ import torch
 
 from .config import OnlineConfig, TrainConfig, config_from_dict, config_to_dict
 from .envs import env_spec_summary, make_env, resolve_env_id
-from .evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, summarize_returns
+from .evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from .io import atomic_path, atomic_write_json
 from .logger import EpisodeRecord, RunLogger, read_records
 from .online import OnlineLearner
 from .surrogates import regularization_amount
 
-__all__ = ["NonFiniteError", "TrainResult", "load_learner", "open_run_dir", "train"]
+__all__ = [
+    "CHECKPOINT",
+    "NonFiniteError",
+    "TrainResult",
+    "load_learner",
+    "open_run_dir",
+    "save_checkpoint",
+    "train",
+]
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -59,7 +67,8 @@ class TrainResult:
     """Episodes already done when this call started (0 for a fresh run)."""
 
 
-def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write a checkpoint atomically (``torch.save`` to a temporary file, then rename)."""
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
@@ -100,12 +109,8 @@ def episode_diagnostics(step_stats: torch.Tensor, learner: OnlineConfig) -> dict
 
 def _finished_result(run: Path) -> TrainResult:
     """The result of a run folder whose run is complete (``done.json`` exists)."""
-    ev = run / "evaluation.json"
-    evaluation = None
-    if ev.exists():
-        evaluation = summarize_returns(json.loads(ev.read_text())["returns"])
     records = read_records(run / "episodes.csv")
-    return TrainResult(run, records, evaluation, len(records))
+    return TrainResult(run, records, load_evaluation(run), len(records))
 
 
 def load_learner(run_dir: str | Path) -> tuple[TrainConfig, OnlineLearner]:
@@ -188,7 +193,7 @@ def train(
                 f"non-finite parameter at episode {len(records)}, step {total_steps}; "
                 "the last good checkpoint is kept"
             )
-        _save_checkpoint(
+        save_checkpoint(
             ckpt_path,
             {
                 "learner": learner.state_dict(),
@@ -250,10 +255,11 @@ def train(
                     ret=f"{ep_ret:.1f}",
                     sps=f"{length / max(time.perf_counter() - t_ep, 1e-9):.0f}",
                 )
+            if finished():
+                break
             if len(records) % cfg.checkpoint_every == 0:
                 checkpoint()  # before the next reset, so a resume draws the same start state
-            if not finished():
-                obs, _ = env.reset()
+            obs, _ = env.reset()
         checkpoint()
     finally:
         if bar is not None:
