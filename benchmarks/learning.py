@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.grid import parse_spec
-from pporpe.reproduce import reproduce
+from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.reproduce import reproduce
 
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 

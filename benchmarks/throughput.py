@@ -28,9 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.config import OnlineConfig
 from pporpe.envs import env_spec_summary, make_env
 from pporpe.online import OnlineLearner
+from pporpe.online.config import OnlineConfig
 
 TARGETS = {"pendulum": 2000.0, "halfcheetah": 1400.0}
 

@@ -26,7 +26,7 @@ from pporpe.batch import (
     train_batch,
     zoo_config,
 )
-from pporpe.logger import EpisodeRecord, read_records
+from pporpe.runs.logger import EpisodeRecord, read_records
 
 # A tiny, fast configuration on the Bullet InvertedPendulum (about 10k raw steps/s).
 TINY = dict(
@@ -350,7 +350,7 @@ def test_run_folder_contents(tmp_path: Path) -> None:
         "tensorboard",
     } <= names
     saved = json.loads((tmp_path / "config.json").read_text())
-    assert saved["learner"] == "batch" and saved["method"] == "ppo" and saved["n_envs"] == 2
+    assert saved["kind"] == "batch" and saved["method"] == "ppo" and saved["n_envs"] == 2
     assert result.updates == 4 and result.total_steps == 256
     records = read_records(tmp_path / "episodes.csv")
     assert records == result.records and len(records) > 0
@@ -362,7 +362,13 @@ def test_run_folder_contents(tmp_path: Path) -> None:
     assert ev["episodes"] == 2 and ev["median"] == pytest.approx(np.median(ev["returns"]))
     done = json.loads((tmp_path / "done.json").read_text())
     assert done["updates"] == 4 and done["total_steps"] == 256
-    assert len(list((tmp_path / "tensorboard").iterdir())) >= 2  # episodes and updates
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])  # one sink: episode and update scalars in one log
+    assert {"train/ret", "update/approx_kl", "update/policy_loss"} <= tags
+    assert len(events.Scalars("update/approx_kl")) == 4
     assert set(result.last_stats) >= {"policy_loss", "approx_kl", "past_threshold"}
     again = train_batch(tiny(), tmp_path, progress=False)  # done: returns at once
     assert strip_time(again.records) == strip_time(result.records)

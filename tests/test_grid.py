@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 
 from pporpe.cli import main
-from pporpe.grid import load_spec, parse_spec
-from pporpe.logger import read_records
-from pporpe.report import mean_ci, write_report
-from pporpe.reproduce import reproduce
+from pporpe.experiments.grid import load_spec, parse_spec
+from pporpe.experiments.report import mean_ci, write_report
+from pporpe.experiments.reproduce import reproduce
+from pporpe.runs.logger import read_records
 
 ROOT = Path(__file__).resolve().parents[1]
 

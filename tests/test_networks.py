@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from pporpe.networks import ACTIVATIONS, mlp, mlp_num_params
+from pporpe.nn.mlp import ACTIVATIONS, mlp, mlp_num_params
 
 
 def _count(module: nn.Module) -> int:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pporpe.config import OnlineConfig, TrainConfig
-from pporpe.online import OnlineLearner
+from pporpe.online import OnlineLearner, StepStats
+from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.surrogates import surrogate_objective
 
 SMALL = dict(layers=2, units=16)
@@ -67,7 +67,7 @@ def test_same_seed_same_numbers() -> None:
     b = make("rpe", seed=3)
     sb = run(b, trans, np.zeros(3, np.float32))
     assert torch.equal(a.theta, b.theta) and torch.equal(a.target, b.target)
-    assert [s.as_tensor().tolist() for s in sa] == [s.as_tensor().tolist() for s in sb]
+    assert [s.as_dict() for s in sa] == [s.as_dict() for s in sb]
 
 
 def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
@@ -90,10 +90,10 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
     assert learner._obs is not None and learner._u is not None and learner._logp_b is not None
     obs_t, u_t, logp_b = learner._obs, learner._u, learner._logp_b
     theta = learner.theta.detach().clone().requires_grad_(True)
-    from pporpe.networks import flat_views
+    from pporpe.nn.mlp import flat_views
 
-    pol = flat_views(theta[: learner.n_policy], learner._pol_shapes)
-    val = flat_views(theta[learner.n_policy :], learner._val_shapes)
+    pol = flat_views(theta[: learner.n_policy], [p.shape for p in learner.model.policy_params])
+    val = flat_views(theta[learner.n_policy :], learner.model.value_shapes)
     r, next_obs, term, trunc = trans[1]
     x1 = torch.as_tensor(next_obs).reshape(1, 3)
     v = learner._value_fn(val, obs_t)[0, 0]
@@ -150,7 +150,7 @@ def test_state_dict_round_trip_continues_identically() -> None:
     torch.set_rng_state(rng)
     sb = run(b, trans[5:], np.ones(3, np.float32))
     assert torch.equal(a.theta, b.theta)
-    assert [s.as_tensor().tolist() for s in sa] == [s.as_tensor().tolist() for s in sb]
+    assert [s.as_dict() for s in sa] == [s.as_dict() for s in sb]
 
 
 def test_deterministic_action_is_in_bounds_and_repeatable() -> None:
@@ -208,8 +208,7 @@ def test_configs_are_frozen() -> None:
 
 
 def test_flat_forward_equals_the_module_it_mirrors() -> None:
-    from pporpe.networks import mlp
-    from pporpe.online import FlatMLP
+    from pporpe.nn.mlp import FlatMLP, mlp
 
     torch.manual_seed(0)
     net = mlp(4, 7, layers=3, units=16)
@@ -235,6 +234,7 @@ def test_compiled_loss_matches_eager() -> None:
     for compiled in (False, True):
         learner = make("rpe", seed=4, compile=compiled)
         stats = run(learner, trans, np.zeros(3, np.float32))
-        results.append((learner.theta.clone(), torch.stack([s.as_tensor() for s in stats])))
+        stacked = StepStats.stack(stats)
+        results.append((learner.theta.clone(), torch.stack(list(vars(stacked).values()))))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-4, atol=1e-5)

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch.distributions import AffineTransform, SigmoidTransform, TransformedDistribution
 
-from pporpe.policies import (
+from pporpe.nn.policies import (
     HEAD_KINDS,
     ActionMap,
     NormalHead,

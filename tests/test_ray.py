@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import ray  # noqa: F401  - part of the test install (make test installs the ray extra)
 
-from pporpe.grid import load_spec
-from pporpe.logger import read_records
-from pporpe.reproduce import reproduce
+from pporpe.experiments.grid import load_spec
+from pporpe.experiments.reproduce import reproduce
+from pporpe.runs.logger import read_records
 
 SPEC = """
 name = "ray-tiny"

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from pporpe.cli import main
-from pporpe.config import OnlineConfig, TrainConfig
-from pporpe.logger import EpisodeRecord, read_records
-from pporpe.runner import NonFiniteError, train
+from pporpe.online.config import OnlineConfig, TrainConfig
+from pporpe.runs import NonFiniteError, train
+from pporpe.runs.logger import EpisodeRecord, read_records
 
 TINY = OnlineConfig(layers=1, units=8)
 
@@ -237,7 +237,7 @@ def test_cli_train_batch_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFix
     assert code == 0
     assert "trained 256 steps (2 updates" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
-    assert saved["learner"] == "batch" and saved["method"] == "rpe" and saved["n_steps"] == 128
+    assert saved["kind"] == "batch" and saved["method"] == "rpe" and saved["n_steps"] == 128
     assert main(["evaluate", str(run), "--episodes", "2"]) == 0
     ev = json.loads((run / "evaluation.json").read_text())
     assert ev["episodes"] == 2 and len(ev["returns"]) == 2

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from pporpe.tsoft import TSoftUpdate
+from pporpe.online.tsoft import TSoftUpdate
 
 
 def reference_tsoft(

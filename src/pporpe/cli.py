@@ -8,12 +8,13 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 __all__ = ["build_parser", "main"]
 
 
 def _cmd_figures(args: argparse.Namespace) -> int:
-    from .figures import draw_analytic_figures
+    from .experiments.figures import draw_analytic_figures
 
     for path in draw_analytic_figures(args.out, eps=args.eps, beta=args.beta, eta=args.eta):
         print(path)
@@ -25,16 +26,11 @@ def _learner_overrides(args: argparse.Namespace) -> dict[str, object]:
     return {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    from .config import OnlineConfig, TrainConfig
-    from .envs import resolve_env_id
+def _online_config(args: argparse.Namespace) -> object:
+    from .online.config import OnlineConfig, TrainConfig
 
-    if args.learner == "batch":
-        return _cmd_train_batch(args)
-
-    # validate everything before any environment is built
     learner = OnlineConfig(**_learner_overrides(args))  # type: ignore[arg-type]
-    cfg = TrainConfig(
+    return TrainConfig(
         env=args.env,
         seed=args.seed,
         episodes=200 if args.episodes is None and args.steps is None else args.episodes,
@@ -43,21 +39,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
         eval_episodes=args.eval_episodes,
         learner=learner,
     )
-    resolve_env_id(cfg.env)
-    from .runner import train
-
-    result = train(cfg, args.out, progress=not args.quiet)
-    last = result.records[-1] if result.records else None
-    if last is not None:
-        print(
-            f"trained {len(result.records)} episodes, {last.total_steps} steps "
-            f"in {last.wall_time:.1f} s ({last.total_steps / max(last.wall_time, 1e-9):.0f} "
-            f"steps/s); last return {last.ret:.1f}"
-        )
-    if result.evaluation is not None:
-        _print_eval(result.evaluation)
-    print(f"run folder: {result.run_dir}")
-    return 0
 
 
 _BATCH_ARGS = {
@@ -80,9 +61,8 @@ _BATCH_ARGS = {
 }
 
 
-def _cmd_train_batch(args: argparse.Namespace) -> int:
-    from .batch import train_batch, zoo_config
-    from .envs import resolve_env_id
+def _batch_config(args: argparse.Namespace) -> object:
+    from .batch.config import zoo_config
 
     if args.episodes is not None:
         raise ValueError("--learner batch trains for --steps (environment steps), not --episodes")
@@ -93,16 +73,34 @@ def _cmd_train_batch(args: argparse.Namespace) -> int:
         for arg, field in _BATCH_ARGS.items()
         if getattr(args, arg, None) is not None
     }
-    # per-task defaults (rl-baselines3-zoo where it has the task), then the given options;
-    # validated before any environment is built
-    cfg = zoo_config(args.env, seed=args.seed, **overrides)
+    # per-task defaults (rl-baselines3-zoo where it has the task), then the given options
+    return zoo_config(args.env, seed=args.seed, **overrides)
+
+
+_CONFIG_FROM_ARGS = {"online": _online_config, "batch": _batch_config}
+"""How ``pporpe train`` options become the run configuration of each learner kind."""
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .envs import resolve_env_id
+    from .runs.loop import train
+
+    # validate everything before any environment is built
+    cfg: Any = _CONFIG_FROM_ARGS[args.learner](args)
     resolve_env_id(cfg.env)
-    result = train_batch(cfg, args.out, progress=not args.quiet)
-    print(
-        f"trained {result.total_steps} steps ({result.updates} updates, "
-        f"{len(result.records)} episodes) in {result.train_time:.1f} s "
-        f"({result.total_steps / max(result.train_time, 1e-9):.0f} steps/s)"
-    )
+    result = train(cfg, args.out, progress=not args.quiet)
+    steps, seconds, episodes = result.total_steps, result.train_time, len(result.records)
+    rate = f"{steps / max(seconds, 1e-9):.0f} steps/s"
+    if args.learner == "batch":
+        print(
+            f"trained {steps} steps ({result.chunks} updates, {episodes} episodes) "
+            f"in {seconds:.1f} s ({rate})"
+        )
+    elif result.records:
+        print(
+            f"trained {episodes} episodes, {steps} steps in {seconds:.1f} s ({rate}); "
+            f"last return {result.records[-1].ret:.1f}"
+        )
     if result.evaluation is not None:
         _print_eval(result.evaluation)
     print(f"run folder: {result.run_dir}")
@@ -120,26 +118,15 @@ def _print_eval(ev: object) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import json
     from pathlib import Path
 
     from .evaluation import EVAL_SEED_OFFSET, evaluate_policy
     from .io import atomic_write_json
+    from .runs.loop import load_policy
 
-    config_path = Path(args.run_dir) / "config.json"
-    kind = json.loads(config_path.read_text()).get("learner") if config_path.exists() else None
-    if kind == "batch":
-        from .batch import load_batch_learner
-
-        bcfg, blearner = load_batch_learner(args.run_dir)
-        env, seed, act = bcfg.env, bcfg.seed, blearner.act_deterministic
-    else:
-        from .runner import load_learner
-
-        cfg, learner = load_learner(args.run_dir)
-        env, seed, act = cfg.env, cfg.seed, learner.act_deterministic
-    seed = seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
-    ev = evaluate_policy(act, env, args.episodes, seed)
+    cfg, act = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
+    seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
+    ev = evaluate_policy(act, cfg.env, args.episodes, seed)
     out = Path(args.run_dir) / "evaluation.json"
     atomic_write_json(out, {**ev.to_dict(), "seed": seed})
     _print_eval(ev)
@@ -148,8 +135,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .grid import load_spec
-    from .reproduce import reproduce
+    from .experiments.grid import load_spec
+    from .experiments.reproduce import reproduce
 
     spec = load_spec(args.spec)  # every run is validated before any starts
     print(
@@ -176,7 +163,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def _report(out: str) -> None:
-    from .report import write_report
+    from .experiments.report import write_report
 
     paths = write_report(out)
     print(paths[0].read_text())

@@ -2,14 +2,22 @@ r"""Surrogate objectives of PPO, PPO-RB and PPO-RPE as pure tensor functions.
 
 Every function here works on tensors of any batch shape, in float32 or float64,
 does no reduction unless it says so, never calls ``.item()`` and never touches
-global state. Equation labels refer to the paper (``pporpe-paper.tex``):
+global state. Equation numbers are those printed in the paper, T. Kobayashi, "Proximal
+Policy Optimization with Relative Pearson Divergence" (arXiv:2010.03290); the label in
+parentheses is the equation's name, listed with all others in ``docs/glossary.md``:
 
-* ``eq:ratio_ppo``  surrogate density ratio of PPO (eta = 0) and PPO-RB (eta > 0)
-* ``eq:div_rpe``    relative Pearson divergence PE_beta
-* ``eq:loss_rpe``   PPO-RPE objective rho*A - C*(1-beta+beta*rho)*(rho_beta-1)^2
-* ``eq:grad_rpe``   its derivative with respect to rho, the surrogate advantage A~
-* ``eq:thr_r``      thresholds on the raw ratio rho
-* ``eq:mag_rpe``    threshold-based gain C
+* eq. (5) (``ratio_ppo``), Sec. II-B: surrogate density ratio of PPO (eta = 0) and
+  PPO-RB (eta > 0); eq. (6) (``loss_ppo``) is their loss
+* eq. (9) (``div_rpe``), Sec. II-C: relative Pearson divergence PE_beta
+* eq. (11) (``loss_rpe``), Sec. III-B: PPO-RPE objective
+  rho*A - C*(1-beta+beta*rho)*(rho_beta-1)^2
+* eq. (12) (``grad_rpe``), Sec. III-C: its derivative with respect to rho, the
+  surrogate advantage A~
+* eqs. (13)-(14) (``thr_rb``, ``thr_r``), Sec. III-D: thresholds on rho_beta and on
+  the raw ratio rho
+* eq. (15) (``mag_rpe``), Sec. III-D: threshold-based gain C
+* eq. (16) (``grad_rpe_thre``), Sec. III-D, and Algorithm 1: A~ with that gain
+  substituted, as printed (see ``docs/erratum.md``)
 
 Conventions shared by all functions:
 
@@ -18,11 +26,12 @@ Conventions shared by all functions:
   against ``ratio``.
 * sigma = sign(A).
 * The advantage and the gain C are constants for autograd: no gradient flows into
-  them (C depends on A, see NOTES.md section 1).
+  them (C depends on A through eq. (15); see ``docs/erratum.md``).
 * Objectives are to be *maximised*; a loss is their negative mean.
 
 See ``docs/erratum.md`` for why :func:`rpe_surrogate_advantage` implements the
-derived form of eq. grad_rpe rather than the printed eq. grad_rpe_thre.
+derived form of eq. (12) (``grad_rpe``) with the gain of eq. (15) (``mag_rpe``) rather
+than the printed eq. (16) (``grad_rpe_thre``), Sec. III-D.
 """
 
 from __future__ import annotations
@@ -55,7 +64,7 @@ Method = Literal["ppo", "rb", "rpe"]
 METHODS: tuple[Method, ...] = get_args(Method)
 
 RPEForm = Literal["derived", "printed"]
-"""Which A~ of PPO-RPE to use: the exact derivative (default) or the paper's printed eq."""
+"""Which A~ of PPO-RPE: the exact derivative (default) or the paper's printed eq. (16)."""
 
 _RPE_FORMS: tuple[RPEForm, ...] = get_args(RPEForm)
 
@@ -120,7 +129,7 @@ def _sign(adv: Tensor) -> Tensor:
 # Relative density ratio and the RPE divergence
 # ----------------------------------------------------------------------------------------
 def relative_ratio(ratio: Tensor, beta: float) -> Tensor:
-    r"""Relative density ratio (text below eq. div_rpe).
+    r"""Relative density ratio (text below eq. (9) (``div_rpe``), Sec. II-C; Fig. 1).
 
     .. math:: \rho_\beta = \frac{\pi}{\beta\pi + (1-\beta)\pi_b}
                          = \frac{\rho}{1 - \beta + \beta\rho} \in [0, 1/\beta)
@@ -134,7 +143,9 @@ def relative_ratio(ratio: Tensor, beta: float) -> Tensor:
 
 
 def rpe_divergence(ratio: Tensor, beta: float, dim: int | tuple[int, ...] | None = None) -> Tensor:
-    r"""Monte-Carlo estimate of the relative Pearson divergence (eq. div_rpe).
+    r"""Monte-Carlo estimate of the relative Pearson divergence (eq. (9) (``div_rpe``), Sec. II-C).
+
+    The mixture policy pi_beta is that of eq. (8) (``pi_beta``).
 
     .. math:: \mathrm{PE}_\beta(\pi, \pi_b)
               = \mathbb{E}_{a\sim\pi_\beta}\big[\tfrac12(\rho_\beta(a) - 1)^2\big]
@@ -158,11 +169,11 @@ def rpe_divergence(ratio: Tensor, beta: float, dim: int | tuple[int, ...] | None
 # PPO-RPE: thresholds, gain and surrogate advantage
 # ----------------------------------------------------------------------------------------
 def ratio_thresholds(eps: float = 0.1, beta: float = 0.5) -> tuple[float, float]:
-    r"""Thresholds of PPO-RPE on the raw ratio rho (eq. thr_r), for A < 0 and A > 0.
+    r"""Thresholds of PPO-RPE on rho (eq. (14) (``thr_r``), Sec. III-D), for A < 0 and A > 0.
 
     .. math:: \rho^\epsilon = 1 + \frac{\sigma\epsilon}{1 - \beta(1 + \sigma\epsilon)}
 
-    They are the images of the symmetric thresholds 1 -/+ eps on rho_beta (eq. thr_rb).
+    They are the images of the symmetric thresholds 1 -/+ eps on rho_beta (eq. (13) (``thr_rb``)).
     With beta = 0.5, eps = 0.1: (0.8182, 1.2222). With beta = 0 they are PPO's 1 -/+ eps.
 
     Returns:
@@ -175,7 +186,7 @@ def ratio_thresholds(eps: float = 0.1, beta: float = 0.5) -> tuple[float, float]
 
 
 def rpe_gain(adv: Tensor, eps: float = 0.1, beta: float = 0.5) -> Tensor:
-    r"""Threshold-based gain C of the RPE regulariser (eq. mag_rpe).
+    r"""Threshold-based gain C of the RPE regulariser (eq. (15) (``mag_rpe``), Sec. III-D).
 
     .. math:: \frac{C}{A} = \frac{1}{\sigma\epsilon\,[\beta\sigma\epsilon
               + 2\{1 - \beta(1+\sigma\epsilon)\}]}
@@ -198,10 +209,12 @@ def rpe_surrogate_advantage(
     beta: float = 0.5,
     form: RPEForm = "derived",
 ) -> Tensor:
-    r"""Surrogate advantage A~ of PPO-RPE with the threshold gain (eq. grad_rpe + eq. mag_rpe).
+    r"""Surrogate advantage A~ of PPO-RPE with the threshold gain (eqs. (12) + (15)).
 
-    ``form="derived"`` (default) is the exact derivative of the objective of
-    eq. loss_rpe with respect to rho (C held constant), see NOTES.md section 1:
+    ``form="derived"`` (default) is eq. (12) (``grad_rpe``, Sec. III-C), the exact
+    derivative of the objective of eq. (11) (``loss_rpe``, Sec. III-B) with respect to
+    rho (C held constant), with the gain C of eq. (15) (``mag_rpe``, Sec. III-D); the
+    derivation and the erratum are in ``docs/erratum.md``:
 
     .. math:: \tilde A = A - C(\rho_\beta - 1)\Big\{\beta(\rho_\beta - 1)
               + \frac{2(1-\beta)}{1-\beta+\beta\rho}\Big\}
@@ -209,12 +222,14 @@ def rpe_surrogate_advantage(
     with C from :func:`rpe_gain`. A~ = A at rho = 1, A~ = 0 exactly at the thresholds
     of :func:`ratio_thresholds`, and A~ has the opposite sign of A beyond them.
 
-    ``form="printed"`` is eq. grad_rpe_thre as printed in the paper (and Alg. 1), with
-    both inner ``+`` signs turned to ``-``. It also vanishes at the threshold but is not
-    the derivative of the RPE objective; it is offered only to reproduce that text.
+    ``form="printed"`` is eq. (16) (``grad_rpe_thre``, Sec. III-D) as printed in the
+    paper (and in Algorithm 1), with both inner ``+`` signs turned to ``-``. It also
+    vanishes at the threshold but is not the derivative of the RPE objective; it is
+    offered only to reproduce that text.
     Its denominator vanishes at beta = 2/(2+3*eps), where it raises ``ValueError``.
 
-    The policy gradient of Alg. 1 is then ``-ratio * A~ * grad log pi``.
+    The policy gradient of Algorithm 1 (and eq. (3), ``grad_reg``) is then
+    ``-ratio * A~ * grad log pi``.
     """
     if form not in _RPE_FORMS:
         raise ValueError(f"form must be one of {', '.join(map(repr, _RPE_FORMS))}; got {form!r}")
@@ -240,7 +255,7 @@ def rpe_surrogate_advantage(
 # Objectives
 # ----------------------------------------------------------------------------------------
 def _ppo_ratio(ratio: Tensor, adv: Tensor, eps: float, eta: float) -> Tensor:
-    r"""rho_PPO of eq. ratio_ppo (clip when eta = 0, rollback when eta > 0)."""
+    r"""rho_PPO of eq. (5) (``ratio_ppo``), Sec. II-B (clip when eta = 0, rollback if eta > 0)."""
     sigma = torch.sign(adv)
     past = sigma * (ratio - 1.0) >= eps
     rolled = -eta * ratio + (1.0 + eta) * (1.0 + sigma * eps)
@@ -256,16 +271,22 @@ def surrogate_objective(
     eta: float = 0.3,
     rpe_form: RPEForm = "derived",
 ) -> Tensor:
-    r"""Per-sample objective rho * A^dagger to *maximise* (its negative is eq. loss_ppo / loss_rpe).
+    r"""Per-sample objective rho * A^dagger to *maximise*.
 
-    * ``"ppo"`` (eq. ratio_ppo, eta = 0; ``eta`` is ignored):
+    Its negative (mean) is the loss of eq. (6) (``loss_ppo``, Sec. II-B) for PPO and
+    PPO-RB, and of eq. (11) (``loss_rpe``, Sec. III-B) for PPO-RPE; both are instances
+    of eq. (2) (``loss_reg``, Sec. II-A).
+
+    * ``"ppo"`` (eq. (5) (``ratio_ppo``), eta = 0; ``eta`` is ignored):
       :math:`\rho^{PPO} A` with :math:`\rho^{PPO} = 1+\sigma\epsilon` where
       :math:`\sigma(\rho-1)\ge\epsilon`, else rho. Equal to
       ``min(rho*A, clip(rho, 1-eps, 1+eps)*A)``.
-    * ``"rb"`` (eq. ratio_ppo, eta > 0): :math:`\rho^{PPO} = -\eta\rho + (1+\eta)(1+\sigma\epsilon)`
+    * ``"rb"`` (eq. (5), eta > 0): :math:`\rho^{PPO} = -\eta\rho + (1+\eta)(1+\sigma\epsilon)`
       past the threshold (rollback), else rho.
-    * ``"rpe"`` (eq. loss_rpe): :math:`\rho A - C(1-\beta+\beta\rho)(\rho_\beta-1)^2`
-      with C of eq. mag_rpe held constant.
+    * ``"rpe"`` (eq. (11) (``loss_rpe``)):
+      :math:`\rho A - C(1-\beta+\beta\rho)(\rho_\beta-1)^2` with C of eq. (15)
+      (``mag_rpe``) held constant; the subtracted term is rho times the regulariser
+      Omega^RPE of eq. (10) (``reg_rpe``).
 
     The derivative with respect to ``ratio`` is the weight of the paper's policy
     gradient: for ``"rpe"`` exactly :func:`rpe_surrogate_advantage` (derived form). With
@@ -309,7 +330,7 @@ def surrogate_loss(
 # Diagnostics
 # ----------------------------------------------------------------------------------------
 class Regularization(NamedTuple):
-    """Per-sample amount of regularisation (Fig. isr_diff) and the past-threshold mask."""
+    """Per-sample amount of regularisation (the paper's Fig. 5) and the past-threshold mask."""
 
     amount: Tensor
     """sigma * (rho - rho_dagger), with rho_dagger = objective / A; 0 where A = 0."""
@@ -330,7 +351,7 @@ def regularization_amount(
     beta: float = 0.5,
     eta: float = 0.3,
 ) -> Regularization:
-    r"""The amount of regularisation the paper plots (Fig. isr_diff) and where it acts.
+    r"""The amount of regularisation the paper plots (Fig. 5, Sec. IV-B) and where it acts.
 
     .. math:: \sigma(\rho - \rho^\dagger), \qquad \rho^\dagger = \rho A^\dagger / A
 

@@ -43,6 +43,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.distributions import Distribution, Independent, Normal, StudentT
 
+from ..config import POLICY_KINDS
+
 __all__ = [
     "HEAD_KINDS",
     "ActionMap",
@@ -52,8 +54,8 @@ __all__ = [
     "make_head",
 ]
 
-HEAD_KINDS: tuple[str, ...] = ("student_t", "normal")
-"""Names accepted by :func:`make_head`."""
+HEAD_KINDS: tuple[str, ...] = POLICY_KINDS
+"""Names accepted by :func:`make_head` (:data:`pporpe.config.POLICY_KINDS`)."""
 
 _HALF_LOG_PI = 0.5 * math.log(math.pi)
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)

@@ -1,12 +1,14 @@
 r"""The paper's online actor-critic learner (Alg. 1): one update per environment step.
 
-Components (NOTES.md §2-§3): a diagonal student-t (or Normal) policy and a value
-network, each L = 5 layers of N = 100 units with LayerNorm and Swish; a target value
-network with the t-soft update; adaptive multiple time-scale eligibility traces; the
-td-AmsProp optimiser; TD and entropy regularisation; and one of the surrogates of
+Components (the paper's Sec. IV-A and Table I; docs/online-learner.md): a diagonal
+student-t (or Normal) policy and a value network, each L = 5 layers of N = 100 units
+with LayerNorm and Swish; a target value network with the t-soft update; adaptive
+multiple time-scale eligibility traces; the td-AmsProp optimiser; TD and entropy
+regularisation; and one of the surrogates of
 :mod:`pporpe.surrogates` chosen by name.
 
-Order of one step (NOTES.md §2b), so that the ratio rho measures exactly one update:
+Order of one step (as in the author's test bed; docs/online-learner.md), so that the ratio
+rho measures exactly one update:
 
 1. the caller acts with a_t (sampled earlier) and gets r_t, s_{t+1};
 2. one forward pass with theta_t over [s_t, s_{t+1}]: row 0 gives log pi_theta_t(u_t|s_t)
@@ -41,26 +43,28 @@ traces, the optimiser and the target update are a handful of whole-vector operat
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
-from torch import Tensor, nn
+from torch import Tensor
 
+from ..advantages import regularized_advantage, td_error
+from ..nn.actor_critic import FlatActorCritic
+from ..nn.mlp import mlp
+from ..nn.policies import ActionMap, PolicyHead, make_head
+from ..surrogates import surrogate_objective
 from .config import OnlineConfig
-from .networks import flat_views, mlp
 from .optim import TDAmsProp
-from .policies import ActionMap, PolicyHead, make_head
-from .surrogates import surrogate_objective
 from .traces import AdaptiveTraces
 from .tsoft import TSoftUpdate
 
-__all__ = ["FlatMLP", "OnlineLearner", "StepStats"]
+__all__ = ["OnlineLearner", "StepStats"]
 
 
-class StepStats(NamedTuple):
+@dataclass(frozen=True)
+class StepStats:
     """What one update did, as 0-dim tensors (no ``.item()`` in the hot path)."""
 
     delta: Tensor
@@ -74,65 +78,18 @@ class StepStats(NamedTuple):
     trace_decay: Tensor
     """Adaptive trace decay exp(-kappa * D) applied at this step."""
 
-    def as_tensor(self) -> Tensor:
-        """The five values stacked into one float tensor (cheap to accumulate)."""
-        return torch.stack([t.to(torch.float32) for t in self])
+    def as_dict(self) -> dict[str, float]:
+        """Python floats by name (synchronises; for logging and tests only)."""
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+    @staticmethod
+    def stack(steps: list[StepStats]) -> StepStats:
+        """The stats of many steps, each field stacked into a 1-D tensor (by name)."""
+        return StepStats(
+            **{f.name: torch.stack([getattr(s, f.name) for s in steps]) for f in fields(StepStats)}
+        )
 
 
-# ------------------------------------------------------------------------------------
-# A network evaluated from views into a flat parameter vector
-# ------------------------------------------------------------------------------------
-_ACTS = {nn.SiLU: F.silu, nn.ReLU: F.relu, nn.Tanh: torch.tanh}
-
-
-@dataclass(frozen=True)
-class _Op:
-    kind: str  # "linear", "norm" or "act"
-    index: int = -1  # position of the weight in the parameter list (bias follows)
-    norm_eps: float = 0.0
-    norm_shape: tuple[int, ...] = ()
-    act: Any = None
-
-
-class FlatMLP:
-    """Evaluates an ``nn.Sequential`` of Linear / LayerNorm / activation layers functionally.
-
-    The parameters are passed as a list of tensors in ``module.parameters()`` order, so
-    they can be views into one flat vector (and ``torch.func`` can differentiate them).
-    """
-
-    def __init__(self, module: nn.Sequential) -> None:
-        self.ops: list[_Op] = []
-        index = 0
-        for layer in module:
-            if isinstance(layer, nn.Linear):
-                self.ops.append(_Op("linear", index))
-                index += 2
-            elif isinstance(layer, nn.LayerNorm):
-                self.ops.append(_Op("norm", index, layer.eps, tuple(layer.normalized_shape)))
-                index += 2
-            elif type(layer) in _ACTS:
-                self.ops.append(_Op("act", act=_ACTS[type(layer)]))
-            else:
-                raise TypeError(f"FlatMLP cannot evaluate layer {layer!r}")
-        self.num_tensors = index
-
-    def __call__(self, params: list[Tensor], x: Tensor) -> Tensor:
-        for op in self.ops:
-            if op.kind == "linear":
-                x = F.linear(x, params[op.index], params[op.index + 1])
-            elif op.kind == "norm":
-                x = F.layer_norm(
-                    x, op.norm_shape, params[op.index], params[op.index + 1], op.norm_eps
-                )
-            else:
-                x = op.act(x)
-        return x
-
-
-# ------------------------------------------------------------------------------------
-# The learner
-# ------------------------------------------------------------------------------------
 class OnlineLearner:
     """Online actor-critic with PPO / PPO-RB / PPO-RPE surrogates (the paper's Alg. 1).
 
@@ -171,21 +128,14 @@ class OnlineLearner:
         )
         policy_net = mlp(obs_dim, self.head.raw_dim, **net_kw)  # type: ignore[arg-type]
         value_net = mlp(obs_dim, 1, **net_kw)  # type: ignore[arg-type]
-        self._policy_fn = FlatMLP(policy_net)
-        self._value_fn = FlatMLP(value_net)
-        pol_params = list(policy_net.parameters())
-        val_params = list(value_net.parameters())
-        self._pol_shapes = [p.shape for p in pol_params]
-        self._val_shapes = [p.shape for p in val_params]
-        self.n_policy = sum(p.numel() for p in pol_params)
-
-        # One flat tensor holds every trainable parameter (policy block first). The
-        # networks see leaf tensors that are views into it, and their .grad are views into
-        # one flat gradient buffer, so backward accumulates straight into that buffer.
-        self.theta = torch.cat([p.detach().reshape(-1) for p in pol_params + val_params])
-        self._grad = torch.zeros_like(self.theta)
-        self.target = self.theta[self.n_policy :].clone()
-        self._make_views()
+        self.model = FlatActorCritic(policy_net, value_net)
+        self._policy_fn, self._value_fn = self.model.policy_fn, self.model.value_fn
+        self._pol_views, self._val_views = self.model.policy_params, self.model.value_params
+        self.theta = self.model.theta
+        self._grad = self.model.grad
+        self.n_policy = self.model.n_policy
+        self.target = self.model.value_block.detach().clone()
+        self._tgt_views = self.model.value_views(self.target)
 
         self.optimizer = TDAmsProp(
             [self.theta],
@@ -194,7 +144,7 @@ class OnlineLearner:
             eps=cfg.opt_eps,
             k_dof=cfg.k_dof,
             amsgrad_decay=cfg.amsgrad_decay,
-            segments=[p.numel() for p in pol_params + val_params],
+            segments=self.model.segment_sizes,
         )
         self.traces = AdaptiveTraces(
             self.theta.numel(), gamma=cfg.gamma, lambdas=cfg.lambdas, kappa=cfg.kappa
@@ -207,17 +157,6 @@ class OnlineLearner:
         if cfg.compile:
             self._loss_fn = torch.compile(self._loss, dynamic=False, fullgraph=False)
         self._reset_pending()
-
-    # -- parameter views ---------------------------------------------------------------
-    def _make_views(self) -> None:
-        leaves = flat_views(self.theta, self._pol_shapes + self._val_shapes)
-        grads = flat_views(self._grad, self._pol_shapes + self._val_shapes)
-        for leaf, grad in zip(leaves, grads, strict=True):
-            leaf.requires_grad_(True)
-            leaf.grad = grad
-        k = len(self._pol_shapes)
-        self._pol_views, self._val_views = leaves[:k], leaves[k:]
-        self._tgt_views = flat_views(self.target, self._val_shapes)
 
     def _reset_pending(self) -> None:
         self._obs: Tensor | None = None  # s_t as a [1, obs_dim] tensor
@@ -293,11 +232,11 @@ class OnlineLearner:
             log_ratio.detach(),
             ratio.detach(),
         )
-        delta = reward * self._reward_scale + bootstrap * next_target - v_d
+        delta = td_error(reward * self._reward_scale, next_target, v_d, bootstrap)
         # entropy term with the density of the bounded action a = f(u): its entropy is
         # bounded, so the bonus cannot grow by inflating the scale of u
         logp_action = logp_d - self.action_map.log_abs_det_jacobian(u)[0]
-        adv = delta - (1.0 - cfg.gamma) * (cfg.beta_td * delta * delta + cfg.beta_de * logp_action)
+        adv = regularized_advantage(delta, logp_action, cfg.gamma, cfg.beta_td, cfg.beta_de)
         sigma = torch.where(adv >= 0, 1.0, -1.0)
         # divergence between the networks the traces were built with and theta_t:
         # KL(pi_b || pi) estimated at the sampled action, plus the squared value change
@@ -336,7 +275,7 @@ class OnlineLearner:
         unit_loss.backward()  # accumulates into self._grad through the leaves' .grad views
 
         with torch.no_grad():
-            # a_{t+1} is sampled from theta_t, before this update (NOTES.md 2b)
+            # a_{t+1} is sampled from theta_t, before this update (the step order above)
             u_next = self.head.sample(raw_next)
             logp_b_next = self.head.log_prob(raw_next, u_next)
             trace = self.traces.step_(self._grad, divergence)
@@ -351,7 +290,7 @@ class OnlineLearner:
             adv=adv,
             ratio=ratio,
             divergence=divergence,
-            trace_decay=self.traces.last_decay,
+            trace_decay=self.traces.last_decay.clone(),  # the traces reuse that buffer
         )
         if terminated or truncated:
             self._reset_pending()

@@ -8,12 +8,14 @@ A spec (see ``experiments/paper.toml``)::
     eval_episodes = 50
     checkpoint_every = 10      # optional
 
-    [learner]                  # optional: any OnlineConfig field, for every run
-    eps = 0.1
+    kind = "online"            # optional: the learner kind ("online" or "batch")
+
+    [learner]                  # optional: any field of the kind's learner settings
+    eps = 0.1                  # (OnlineConfig for "online", BatchConfig for "batch")
 
     [[tasks]]
     env = "pendulum"
-    episodes = 200             # or steps = N
+    episodes = 200             # or steps = N (batch runs: steps)
     [tasks.learner]            # optional: overrides for this task only
     lr = 1e-4
 
@@ -29,13 +31,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .config import OnlineConfig, TrainConfig, config_from_dict
-from .envs import resolve_env_id
-from .surrogates import METHODS
+from ..config import is_int
+from ..envs import resolve_env_id
+from ..runs.kinds import get_kind
+from ..surrogates import METHODS
 
 __all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec"]
 
-_TOP_FIELDS = {"name", "methods", "seeds", "eval_episodes", "checkpoint_every", "learner", "tasks"}
+_TOP_FIELDS = {
+    "name",
+    "kind",
+    "methods",
+    "seeds",
+    "eval_episodes",
+    "checkpoint_every",
+    "learner",
+    "tasks",
+}
 _TASK_FIELDS = {"env", "episodes", "steps", "learner"}
 
 
@@ -49,8 +61,8 @@ class RunSpec:
     """Task alias or Gymnasium id."""
     seed: int
     """Seed."""
-    config: TrainConfig
-    """Full training configuration of the run."""
+    config: Any
+    """Full run configuration (the kind's config type, e.g. TrainConfig)."""
 
     @property
     def key(self) -> str:
@@ -84,10 +96,6 @@ def _fail(where: str, field: str, value: Any, allowed: str) -> ValueError:
     return ValueError(f"{where}: field '{field}' must be {allowed}; got {value!r}")
 
 
-def _is_int(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
 def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
     """Validate a spec dictionary and expand it into runs (no run is started)."""
     unknown = sorted(set(data) - _TOP_FIELDS)
@@ -100,6 +108,12 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
     if not isinstance(name, str):
         raise _fail(where, "name", name, "a string")
 
+    kind_name = data.get("kind", "online")
+    try:
+        kind = get_kind(kind_name)
+    except ValueError as exc:
+        raise ValueError(f"{where}: field 'kind': {exc}") from None
+
     methods = data["methods"]
     if not (isinstance(methods, list) and methods and all(m in METHODS for m in methods)):
         raise _fail(where, "methods", methods, f"a non-empty list drawn from {list(METHODS)}")
@@ -107,14 +121,14 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
         raise _fail(where, "methods", methods, "a list without repeats")
 
     seeds_raw = data["seeds"]
-    if _is_int(seeds_raw):
+    if is_int(seeds_raw):
         if seeds_raw < 1:
             raise _fail(where, "seeds", seeds_raw, "a positive count or a list of ints >= 0")
         seeds = list(range(seeds_raw))
     elif (
         isinstance(seeds_raw, list)
         and seeds_raw
-        and all(_is_int(s) and s >= 0 for s in seeds_raw)
+        and all(is_int(s) and s >= 0 for s in seeds_raw)
         and len(set(seeds_raw)) == len(seeds_raw)
     ):
         seeds = list(seeds_raw)
@@ -124,15 +138,15 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
         )
 
     eval_episodes = data.get("eval_episodes", 50)
-    if not (_is_int(eval_episodes) and eval_episodes >= 0):
+    if not (is_int(eval_episodes) and eval_episodes >= 0):
         raise _fail(where, "eval_episodes", eval_episodes, "an int >= 0")
     checkpoint_every = data.get("checkpoint_every", 10)
-    if not (_is_int(checkpoint_every) and checkpoint_every >= 1):
+    if not (is_int(checkpoint_every) and checkpoint_every >= 1):
         raise _fail(where, "checkpoint_every", checkpoint_every, "an int >= 1")
 
     base_learner = data.get("learner", {})
     if not isinstance(base_learner, dict):
-        raise _fail(where, "learner", base_learner, "a table of OnlineConfig fields")
+        raise _fail(where, "learner", base_learner, "a table of learner settings")
     if "method" in base_learner:
         raise ValueError(f"{where}: field 'learner.method' is set by 'methods', not by learner")
 
@@ -161,31 +175,20 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
         if (episodes is None) == (steps is None):
             raise ValueError(f"{at}: exactly one of the fields 'episodes' and 'steps' must be set")
         for fname, value in (("episodes", episodes), ("steps", steps)):
-            if value is not None and not (_is_int(value) and value >= 1):
+            if value is not None and not (is_int(value) and value >= 1):
                 raise ValueError(f"{at}: field '{fname}' must be an int >= 1; got {value!r}")
         task_learner = task.get("learner", {})
         if not isinstance(task_learner, dict) or "method" in task_learner:
             raise ValueError(
-                f"{at}: field 'learner' must be a table of OnlineConfig fields other than method"
+                f"{at}: field 'learner' must be a table of learner settings other than method"
             )
-        learners = {
-            method: config_from_dict(
-                OnlineConfig,
-                {**base_learner, **task_learner, "method": method},
-                f"{at}.learner",
-            )
-            for method in methods
-        }
+        budget = {"episodes": episodes} if episodes is not None else {"steps": steps}
+        common = {"eval_episodes": eval_episodes, "checkpoint_every": checkpoint_every}
+        overrides = {**base_learner, **task_learner}
         for seed in seeds:
             for method in methods:
-                cfg = TrainConfig(
-                    env=env,
-                    seed=seed,
-                    episodes=episodes,
-                    steps=steps,
-                    checkpoint_every=checkpoint_every,
-                    eval_episodes=eval_episodes,
-                    learner=learners[method],
+                cfg = kind.grid_config(
+                    env, method, seed, budget, common, overrides, f"{at}.learner"
                 )
                 runs.append(RunSpec(method, env, seed, cfg))
     return GridSpec(name=name, runs=tuple(runs), source=where)

@@ -1,6 +1,9 @@
-r"""Adaptive, multiple time-scale eligibility traces (Kobayashi 2020, arXiv 2008.10040).
+r"""Adaptive, multiple time-scale eligibility traces (Kobayashi 2020, arXiv:2008.10040).
 
-Online TD learning with traces on network parameters (NOTES.md section 3). Per
+T. Kobayashi, "Adaptive and multiple time-scale eligibility traces for online deep
+reinforcement learning" (2020), cited by the PPO-RPE paper (arXiv:2010.03290, Sec. IV-A
+and Table I) in place of experience replay. Online TD learning with traces on network
+parameters; how the online learner feeds them is in ``docs/online-learner.md``. Per
 step, with ``g`` the gradient of the per-step loss divided by the TD error and
 ``d >= 0`` the divergence between the current networks and those of the previous
 step (the learner passes KL estimate + squared value change)::
@@ -26,11 +29,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..config import is_real
+
 __all__ = ["AdaptiveTraces"]
-
-
-def _is_real(x: Any) -> bool:
-    return not isinstance(x, bool) and isinstance(x, int | float) and not math.isnan(x)
 
 
 class AdaptiveTraces:
@@ -41,8 +42,8 @@ class AdaptiveTraces:
         gamma: discount factor, in ``[0, 1]``.
         lambdas: ``(lambda1, lambda2)``, each in ``[0, 1]``: trace factors of the
             accumulating trace ``e`` (fast time scale) and the replacing trace ``r``
-            (slow time scale). The paper uses ``(0.5, 0.95)``.
-        kappa: sensitivity to the divergence, ``>= 0``.
+            (slow time scale). The paper uses ``(0.5, 0.95)`` (Table I).
+        kappa: sensitivity to the divergence, ``>= 0`` (the paper: 10, Table I).
         dtype, device: of the trace buffers.
 
     Attributes:
@@ -64,16 +65,16 @@ class AdaptiveTraces:
     ) -> None:
         if isinstance(numel, bool) or not isinstance(numel, int) or numel <= 0:
             raise ValueError(f"numel must be a positive int, got {numel!r}")
-        if not _is_real(gamma) or not 0.0 <= gamma <= 1.0:
+        if not is_real(gamma) or not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
         if isinstance(lambdas, str | Tensor) or not isinstance(lambdas, Sequence):
             raise ValueError(f"lambdas must be a pair (lambda1, lambda2), got {lambdas!r}")
         if len(lambdas) != 2:
             raise ValueError(f"lambdas must be a pair (lambda1, lambda2), got {lambdas!r}")
         for i, lam in enumerate(lambdas):
-            if not _is_real(lam) or not 0.0 <= lam <= 1.0:
+            if not is_real(lam) or not 0.0 <= lam <= 1.0:
                 raise ValueError(f"lambdas[{i}] (lambda{i + 1}) must be in [0, 1], got {lam!r}")
-        if not _is_real(kappa) or not 0.0 <= kappa < math.inf:
+        if not is_real(kappa) or not 0.0 <= kappa < math.inf:
             raise ValueError(f"kappa must be in [0, inf), got {kappa!r}")
         self.numel = numel
         self.gamma = float(gamma)

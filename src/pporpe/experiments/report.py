@@ -29,9 +29,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy import stats
 
+from ..io import atomic_savefig, atomic_write_text
+from ..runs.logger import EpisodeRecord, read_records
 from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
-from .io import atomic_savefig, atomic_write_text
-from .logger import EpisodeRecord, read_records
 
 __all__ = ["Cell", "load_results", "mean_ci", "write_report"]
 

@@ -1,8 +1,15 @@
 r"""td-AmsProp: LaProp with t-momentum and a decaying AMSGrad maximum.
 
-The optimiser named in the paper's experimental setup (NOTES.md section 3;
-Ilboudo et al., TNNLS 2020, for t-momentum; Ziyin et al. 2020 for LaProp). For
-every *segment* (by default: every parameter tensor) with ``n`` elements, at step
+The optimiser named in the experimental setup of the PPO-RPE paper (arXiv:2010.03290,
+Sec. IV-A): LaProp with t-momentum and d-AmsGrad ("td-AmsProp") as the SGD of eq. (4)
+(``sgd``, Sec. II-A), with default parameters except the learning rate. Components:
+t-momentum from Ilboudo, Kobayashi and Sugimoto, "Robust stochastic gradient descent
+with student-t distribution based first-order momentum", IEEE TNNLS, 2020; LaProp from
+Ziyin, Wang and Ueda, "LaProp: Separating momentum and adaptivity in Adam",
+arXiv:2002.04839, 2020; the decaying AMSGrad maximum (d-AmsGrad) from Kobayashi 2020,
+as cited in the paper. This project's constants are listed in ``docs/online-learner.md``.
+
+For every *segment* (by default: every parameter tensor) with ``n`` elements, at step
 ``t`` with gradient ``g``::
 
     v     <- beta2 v + (1 - beta2) g^2
@@ -45,35 +52,24 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..config import check_real
+
 __all__ = ["TDAmsProp"]
 
 
 # --------------------------------------------------------------------- validation
 
 
-def _check_real(name: str, value: Any, lo: float, hi: float, lo_open: bool, hi_open: bool) -> None:
-    """Raise ValueError unless ``value`` is a real number in the given interval."""
-    interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{name} must be a real number in {interval}, got {value!r}")
-    v = float(value)
-    ok = not math.isnan(v)
-    ok = ok and (v > lo if lo_open else v >= lo)
-    ok = ok and (v < hi if hi_open else v <= hi)
-    if not ok:
-        raise ValueError(f"{name} must be in {interval}, got {value!r}")
-
-
 def _validate_hparams(lr: Any, betas: Any, eps: Any, k_dof: Any, amsgrad_decay: Any) -> None:
     """Validate the scalar hyper-parameters of td-AmsProp (ValueError naming the culprit)."""
-    _check_real("lr", lr, 0.0, math.inf, lo_open=True, hi_open=True)
+    check_real("lr", lr, 0.0, math.inf, lo_open=True, hi_open=True)
     if isinstance(betas, str | Tensor) or not isinstance(betas, Sequence) or len(betas) != 2:
         raise ValueError(f"betas must be a pair (beta1, beta2), each in [0, 1), got {betas!r}")
-    _check_real("betas[0] (beta1)", betas[0], 0.0, 1.0, lo_open=False, hi_open=True)
-    _check_real("betas[1] (beta2)", betas[1], 0.0, 1.0, lo_open=False, hi_open=True)
-    _check_real("eps", eps, 0.0, math.inf, lo_open=True, hi_open=True)
-    _check_real("k_dof", k_dof, 0.0, math.inf, lo_open=True, hi_open=False)  # inf: LaProp
-    _check_real("amsgrad_decay", amsgrad_decay, 0.0, 1.0, lo_open=False, hi_open=False)
+    check_real("betas[0] (beta1)", betas[0], 0.0, 1.0, lo_open=False, hi_open=True)
+    check_real("betas[1] (beta2)", betas[1], 0.0, 1.0, lo_open=False, hi_open=True)
+    check_real("eps", eps, 0.0, math.inf, lo_open=True, hi_open=True)
+    check_real("k_dof", k_dof, 0.0, math.inf, lo_open=True, hi_open=False)  # inf: LaProp
+    check_real("amsgrad_decay", amsgrad_decay, 0.0, 1.0, lo_open=False, hi_open=False)
 
 
 # --------------------------------------------------------------------- fused kernel
@@ -252,7 +248,7 @@ class TDAmsProp(torch.optim.Optimizer):
 
     The defaults (``lr=3e-4``, ``betas=(0.9, 0.999)``, ``eps=1e-8``, ``k_dof=1``,
     ``amsgrad_decay=0.999``) are this project's choice: the author's library and
-    its defaults are not available offline. ``lr=3e-4`` is the paper's.
+    its defaults are not available offline. ``lr=3e-4`` is the paper's (Table I).
 
     State per parameter (checkpointable with ``state_dict``/``load_state_dict``):
     ``step`` (int64, 0-dim), ``v``, ``m``, ``vmax_scaled`` (like the parameter) and

@@ -2,9 +2,12 @@ r"""t-soft update of a target network (Kobayashi & Ilboudo, Neural Networks 2021
 
 A soft (Polyak) update whose rate shrinks when the online parameters are an
 outlier, judged by a student-t model of their squared distance to the target
-(NOTES.md section 3). With online parameters ``theta``, target ``theta_bar``,
-rate ``tau``, degrees of freedom ``nu`` and the scalars ``W`` (initially
-``(1 - tau) / tau``) and ``sigma2`` (initially ``sigma2_init``), one update is::
+(T. Kobayashi and W. E. L. Ilboudo, "t-soft update of target network for deep
+reinforcement learning", Neural Networks, 2021). The PPO-RPE paper (arXiv:2010.03290,
+Sec. IV-A) uses it for the target value network with ``(tau, nu) = (0.3, 1.0)``
+(Table I). With online parameters ``theta``, target ``theta_bar``, rate ``tau``,
+degrees of freedom ``nu`` and the scalars ``W`` (initially ``(1 - tau) / tau``) and
+``sigma2`` (initially ``sigma2_init``), one update is::
 
     D2        = mean((theta - theta_bar)^2)          # over ALL elements (one scalar)
     w         = (nu + 1) / (nu + D2 / sigma2)
@@ -29,11 +32,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..config import is_real
+
 __all__ = ["TSoftUpdate"]
-
-
-def _is_real(x: Any) -> bool:
-    return not isinstance(x, bool) and isinstance(x, int | float) and not math.isnan(x)
 
 
 class TSoftUpdate:
@@ -63,13 +64,13 @@ class TSoftUpdate:
         *,
         sigma2_min: float = 1e-12,
     ) -> None:
-        if not _is_real(tau) or not 0.0 < tau <= 1.0:
+        if not is_real(tau) or not 0.0 < tau <= 1.0:
             raise ValueError(f"tau must be in (0, 1], got {tau!r}")
-        if not _is_real(nu) or not nu > 0.0:
+        if not is_real(nu) or not nu > 0.0:
             raise ValueError(f"nu must be in (0, inf] (inf gives Polyak averaging), got {nu!r}")
-        if not _is_real(sigma2_init) or not 0.0 < sigma2_init < math.inf:
+        if not is_real(sigma2_init) or not 0.0 < sigma2_init < math.inf:
             raise ValueError(f"sigma2_init must be in (0, inf), got {sigma2_init!r}")
-        if not _is_real(sigma2_min) or not 0.0 <= sigma2_min <= sigma2_init:
+        if not is_real(sigma2_min) or not 0.0 <= sigma2_min <= sigma2_init:
             raise ValueError(
                 f"sigma2_min must be in [0, sigma2_init={sigma2_init!r}], got {sigma2_min!r}"
             )

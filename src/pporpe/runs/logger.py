@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from .io import atomic_write_text
+from ..io import atomic_write_text
 
 __all__ = ["EpisodeRecord", "RunLogger", "read_records"]
 
@@ -86,6 +86,13 @@ class RunLogger:
             return
         for name in ("ret", "length", "reg_amount", "past_threshold", "trace_decay", "ratio_dev"):
             self._tb.add_scalar(f"train/{name}", getattr(rec, name), rec.total_steps)
+
+    def scalars(self, prefix: str, values: dict[str, float], step: int) -> None:
+        """Log other scalars (e.g. a batch update's statistics) as ``prefix/name``."""
+        if self._tb is None:
+            return
+        for name, value in values.items():
+            self._tb.add_scalar(f"{prefix}/{name}", value, step)
 
     def write_records(self, records: list[EpisodeRecord]) -> None:
         """Rewrite the per-episode CSV atomically from the full list of records."""

@@ -25,26 +25,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import torch
-from torch import nn
+import torch.nn.functional as F
+from torch import Tensor, nn
 
-__all__ = ["ACTIVATIONS", "INITS", "flat_views", "mlp", "mlp_num_params"]
+from ..config import ACTIVATIONS, check_positive_int
 
-ACTIVATIONS: tuple[str, ...] = ("swish", "relu", "tanh")
-"""Allowed activation names; ``swish`` is ``x * sigmoid(x)`` (``nn.SiLU``)."""
+__all__ = ["ACTIVATIONS", "INITS", "FlatMLP", "flat_views", "mlp", "mlp_num_params"]
 
 INITS: tuple[str, ...] = ("default", "orthogonal")
 """Allowed initialisation schemes of :func:`mlp`."""
 
 _GAINS: dict[str, float] = {"swish": 1.0, "relu": math.sqrt(2.0), "tanh": 5.0 / 3.0}
-
-
-def _check_positive_int(name: str, value: object) -> int:
-    """Return ``value`` if it is a positive int (not a bool), else raise ValueError."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    return value
 
 
 def _activation(name: str) -> nn.Module:
@@ -86,10 +81,10 @@ def mlp(
     Raises:
         ValueError: naming the bad parameter and, where relevant, the allowed values.
     """
-    _check_positive_int("in_dim", in_dim)
-    _check_positive_int("out_dim", out_dim)
-    _check_positive_int("layers", layers)
-    _check_positive_int("units", units)
+    check_positive_int("in_dim", in_dim)
+    check_positive_int("out_dim", out_dim)
+    check_positive_int("layers", layers)
+    check_positive_int("units", units)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
     if init not in INITS:
@@ -152,3 +147,51 @@ def flat_views(flat: torch.Tensor, shapes: Sequence[torch.Size]) -> list[torch.T
     if offset != flat.numel():
         raise ValueError(f"shapes cover {offset} elements but the tensor has {flat.numel()}")
     return out
+
+
+_ACTS = {nn.SiLU: F.silu, nn.ReLU: F.relu, nn.Tanh: torch.tanh}
+
+
+@dataclass(frozen=True)
+class _Op:
+    kind: str  # "linear", "norm" or "act"
+    index: int = -1  # position of the weight in the parameter list (bias follows)
+    norm_eps: float = 0.0
+    norm_shape: tuple[int, ...] = ()
+    act: Any = None
+
+
+class FlatMLP:
+    """Evaluates an ``nn.Sequential`` of Linear / LayerNorm / activation layers functionally.
+
+    The parameters are passed as a list of tensors in ``module.parameters()`` order, so
+    they can be views into one flat vector (and ``torch.func`` can differentiate them).
+    """
+
+    def __init__(self, module: nn.Sequential) -> None:
+        self.ops: list[_Op] = []
+        index = 0
+        for layer in module:
+            if isinstance(layer, nn.Linear):
+                self.ops.append(_Op("linear", index))
+                index += 2
+            elif isinstance(layer, nn.LayerNorm):
+                self.ops.append(_Op("norm", index, layer.eps, tuple(layer.normalized_shape)))
+                index += 2
+            elif type(layer) in _ACTS:
+                self.ops.append(_Op("act", act=_ACTS[type(layer)]))
+            else:
+                raise TypeError(f"FlatMLP cannot evaluate layer {layer!r}")
+        self.num_tensors = index
+
+    def __call__(self, params: list[Tensor], x: Tensor) -> Tensor:
+        for op in self.ops:
+            if op.kind == "linear":
+                x = F.linear(x, params[op.index], params[op.index + 1])
+            elif op.kind == "norm":
+                x = F.layer_norm(
+                    x, op.norm_shape, params[op.index], params[op.index + 1], op.norm_eps
+                )
+            else:
+                x = op.act(x)
+        return x

@@ -1,7 +1,7 @@
 """Run a grid of independent training runs on a local process pool or a Ray cluster.
 
 Each run trains and evaluates into ``OUT/<env>/<method>/seed<k>`` through
-:func:`pporpe.runner.train`, which checkpoints at episode boundaries and resumes. So
+:func:`pporpe.runs.train`, which checkpoints at episode boundaries and resumes. So
 running :func:`reproduce` again with the same arguments after a crash (even SIGKILL)
 skips finished runs and resumes unfinished ones from their last checkpoint.
 
@@ -28,9 +28,11 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from .config import TrainConfig, config_from_dict, config_to_dict
+from ..config import config_from_dict
+from ..io import atomic_write_json, atomic_write_text
+from ..runs.folder import config_json
+from ..runs.kinds import get_kind, kind_of
 from .grid import GridSpec, RunSpec, spec_summary
-from .io import atomic_write_json, atomic_write_text
 
 __all__ = ["GridOutcome", "reproduce", "run_one"]
 
@@ -68,13 +70,18 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
 
 
 def run_one(run_dir: str, cfg_dict: dict[str, Any]) -> dict[str, Any]:
-    """Train and evaluate one run (in a worker); never raises, reports the status."""
+    """Train and evaluate one run (in a worker); never raises, reports the status.
+
+    ``cfg_dict`` is the run's ``config.json`` content: its learner kind and settings.
+    """
     path = Path(run_dir)
     try:
-        cfg = config_from_dict(TrainConfig, cfg_dict)
+        data = dict(cfg_dict)
+        kind = get_kind(data.pop("kind"))
+        cfg: Any = config_from_dict(kind.config_type, data)
         with _run_lock(path):
             (path / "error.txt").unlink(missing_ok=True)
-            from .runner import train
+            from ..runs.loop import train
 
             result = train(cfg, path, progress=False)
         score = result.evaluation.median if result.evaluation is not None else None
@@ -211,7 +218,7 @@ def reproduce(
         if (run_dir / "done.json").exists():
             skipped.append(run.key)
         else:
-            jobs.append((str(run_dir), config_to_dict(run.config)))
+            jobs.append((str(run_dir), config_json(kind_of(run.config), run.config)))
 
     bar = _Progress(len(spec.runs), len(skipped), progress)
     try:

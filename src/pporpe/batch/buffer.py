@@ -1,0 +1,110 @@
+"""Rollout storage of the batch learner with named fields, and its minibatches."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["FinishedEpisode", "Minibatch", "RolloutBuffer"]
+
+
+class RolloutBuffer:
+    """Preallocated ``[n_steps, n_envs, ...]`` tensors of one rollout."""
+
+    def __init__(self, n_steps: int, n_envs: int, obs_dim: int, act_dim: int) -> None:
+        shape = (n_steps, n_envs)
+        self.obs = torch.zeros(*shape, obs_dim)
+        """Normalised observations s_t."""
+        self.u = torch.zeros(*shape, act_dim)
+        """Pre-map actions u_t (what the ratio is computed on)."""
+        self.logp = torch.zeros(shape)
+        """log pi_old(u_t|s_t)."""
+        self.values = torch.zeros(shape)
+        """V_old(s_t)."""
+        self.rewards = torch.zeros(shape)
+        """Normalised rewards r_t."""
+        self.terminated = torch.zeros(shape, dtype=torch.bool)
+        """The episode ended at step t with a true termination."""
+        self.truncated = torch.zeros(shape, dtype=torch.bool)
+        """The episode ended at step t by a time limit (and did not terminate)."""
+        self.next_values = torch.zeros(shape)
+        """V_old of the state reached by step t (final observation at an episode's end)."""
+        self.advantages = torch.zeros(shape)
+        """GAE(lambda) advantages (filled by :func:`compute_gae`)."""
+        self.returns = torch.zeros(shape)
+        """Lambda-returns: targets of the value function."""
+
+
+@dataclass(frozen=True)
+class FinishedEpisode:
+    """An episode that ended during a rollout (raw, unnormalised rewards)."""
+
+    env_index: int
+    """Which sub-environment."""
+    ret: float
+    """Undiscounted return."""
+    length: int
+    """Steps in the episode."""
+    total_steps: int
+    """Environment steps over all sub-environments when it ended."""
+    terminated: bool
+    """True end (else a truncation)."""
+
+
+@dataclass(frozen=True)
+class Minibatch:
+    """Rows of a rollout, flattened over ``[n_steps, n_envs]``, by name.
+
+    The fields are column views of one packed ``[n, obs_dim + act_dim + 4]`` tensor, so a
+    shuffled epoch is one gather (:meth:`index`) and a minibatch one slice (:meth:`slice`);
+    the column layout is known here only.
+    """
+
+    obs: Tensor
+    """Normalised observations ``[n, obs_dim]``."""
+    u: Tensor
+    """Pre-map actions ``[n, act_dim]``."""
+    logp_old: Tensor
+    """log pi_old(u|s) ``[n]``."""
+    adv: Tensor
+    """Advantages ``[n]`` (normalised per batch when configured)."""
+    ret: Tensor
+    """Lambda-returns ``[n]``: value targets."""
+    v_old: Tensor
+    """V_old(s) ``[n]`` (for value clipping)."""
+    packed: Tensor
+    """The packed rows the fields are views of."""
+
+    @staticmethod
+    def _from_packed(packed: Tensor, obs_dim: int) -> Minibatch:
+        d, a = obs_dim, packed.shape[1] - obs_dim - 4
+        return Minibatch(
+            obs=packed[:, :d],
+            u=packed[:, d : d + a],
+            logp_old=packed[:, d + a],
+            adv=packed[:, d + a + 1],
+            ret=packed[:, d + a + 2],
+            v_old=packed[:, d + a + 3],
+            packed=packed,
+        )
+
+    @staticmethod
+    def from_buffer(buf: RolloutBuffer, adv: Tensor) -> Minibatch:
+        """The whole rollout as one flat batch, with ``adv`` as its advantages."""
+        n = buf.logp.numel()
+        columns = [buf.obs.reshape(n, -1), buf.u.reshape(n, -1)]
+        columns += [t.reshape(n, 1) for t in (buf.logp, adv, buf.returns, buf.values)]
+        return Minibatch._from_packed(torch.cat(columns, dim=1), buf.obs.shape[-1])
+
+    def __len__(self) -> int:
+        return int(self.packed.shape[0])
+
+    def index(self, rows: Tensor) -> Minibatch:
+        """The rows ``rows`` (a gather: e.g. one shuffled epoch)."""
+        return Minibatch._from_packed(self.packed[rows], self.obs.shape[1])
+
+    def slice(self, start: int, stop: int) -> Minibatch:
+        """Rows ``start:stop`` (views)."""
+        return Minibatch._from_packed(self.packed[start:stop], self.obs.shape[1])

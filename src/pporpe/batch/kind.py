@@ -1,0 +1,252 @@
+"""Batch PPO as a learner kind of the run loop (:class:`BatchTrainer`, registered as
+``"batch"``), and :func:`train_batch`, a whole batch run through that loop."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy
+from ..runs.folder import load_checkpoint, read_config
+from ..runs.kinds import Episode, NonFiniteError, Progress, Trainer, register_kind
+from ..runs.loop import RunResult, train
+from .config import BatchConfig, zoo_config
+from .learner import BatchLearner, UpdateStats
+
+__all__ = [
+    "BATCH",
+    "BatchKind",
+    "BatchResult",
+    "BatchTrainer",
+    "evaluate_learner",
+    "load_batch_learner",
+    "train_batch",
+]
+
+
+class BatchTrainer:
+    """One batch run around a :class:`BatchLearner`; a unit of work is one update
+    (a rollout, then its minibatch epochs)."""
+
+    bar_unit = "step"
+
+    def __init__(self, cfg: BatchConfig) -> None:
+        self.cfg = cfg
+        self.learner = BatchLearner(cfg)
+        self.bar_total = cfg.n_updates * cfg.rollout_size
+        self.last_stats: UpdateStats | None = None
+
+    def finished(self) -> bool:
+        """Whether every update is done."""
+        return self.learner.updates >= self.cfg.n_updates
+
+    def bar_position(self) -> int:
+        """Environment steps done."""
+        return self.learner.total_steps
+
+    def counters(self) -> dict[str, int]:
+        """Updates (the unit of work) and environment steps done."""
+        updates = self.learner.updates
+        return {"total_steps": self.learner.total_steps, "chunks": updates, "updates": updates}
+
+    def advance(self) -> Progress:
+        """Collect one rollout and learn from it.
+
+        Episodes that end during rollout k get the diagnostics of update k, the update
+        that learns from them. ``trace_decay`` is 1.0: batch PPO has no eligibility
+        traces (1.0 = no decay), and a number (not NaN) keeps records comparable.
+        """
+        learner = self.learner
+        finished = learner.collect_rollouts()
+        stats = learner.train()
+        if not math.isfinite(float(stats.policy_loss) + float(stats.value_loss)):
+            raise NonFiniteError(f"non-finite loss at update {learner.updates}")
+        self.last_stats = stats
+        reg, past, dev = (
+            float(stats.reg_amount),
+            float(stats.past_threshold),
+            float(stats.ratio_dev),
+        )
+        episodes = [
+            Episode(
+                total_steps=ep.total_steps,
+                ret=ep.ret,
+                length=ep.length,
+                reg_amount=reg,
+                past_threshold=past,
+                trace_decay=1.0,
+                ratio_dev=dev,
+            )
+            for ep in finished
+        ]
+        return Progress(
+            episodes=episodes,
+            checkpoint_due=learner.updates % self.cfg.checkpoint_every == 0,
+            bar_advance=self.cfg.rollout_size,
+            scalars=stats.as_dict(),
+            total_steps=learner.total_steps,
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """The learner (with its environments' replay records) and the torch RNG state."""
+        return {"learner": self.learner.state_dict(), "torch_rng": torch.get_rng_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`, replaying every sub-environment's episode."""
+        self.learner.load_state_dict(state["learner"])
+        torch.set_rng_state(state["torch_rng"])
+
+    def parameters_finite(self) -> bool:
+        """Whether every parameter is finite."""
+        return self.learner.model.parameters_finite()
+
+    def act_deterministic(self, obs: Any) -> np.ndarray:
+        """The policy's location, bounded, with frozen observation statistics."""
+        return self.learner.act_deterministic(obs)
+
+    def close(self) -> None:
+        """Close the vector environment."""
+        self.learner.close()
+
+
+def _policy_learner(cfg: BatchConfig, state: dict[str, Any]) -> BatchLearner:
+    """A learner with a checkpoint's parameters and observation statistics, built on a
+    single sub-environment (enough to act; the saved episodes are not replayed)."""
+    learner = BatchLearner(dataclasses.replace(cfg, n_envs=1, batch_size=1))
+    learner.cfg = cfg
+    with torch.no_grad():
+        learner.model.theta.copy_(state["learner"]["theta"])
+    learner.normalizer.obs_rms.load_state_dict(state["learner"]["normalizer"]["obs_rms"])
+    return learner
+
+
+class BatchKind:
+    """Learner kind ``"batch"``: batch PPO, configured by :class:`BatchConfig`."""
+
+    name = "batch"
+    config_type = BatchConfig
+
+    def make_trainer(self, cfg: BatchConfig) -> BatchTrainer:
+        """A fresh run (torch is already seeded by the loop)."""
+        return BatchTrainer(cfg)
+
+    def load_policy(self, cfg: BatchConfig, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
+        """The deterministic policy of a checkpoint."""
+        learner = _policy_learner(cfg, state)
+        learner.close()  # acting needs no environment
+        return learner.act_deterministic
+
+    def grid_config(
+        self,
+        env: str,
+        method: str,
+        seed: int,
+        budget: Mapping[str, int],
+        common: Mapping[str, int],
+        learner: Mapping[str, Any],
+        where: str,
+    ) -> BatchConfig:
+        """:func:`zoo_config` of the task with the spec's :class:`BatchConfig` overrides."""
+        if "steps" not in budget:
+            raise ValueError(f"{where}: batch runs take 'steps', not 'episodes'")
+        unknown = sorted(set(learner) - {f.name for f in dataclasses.fields(BatchConfig)})
+        if unknown:
+            raise ValueError(f"{where}: unknown field(s) {unknown} of BatchConfig")
+        try:
+            return zoo_config(
+                env,
+                **{**learner},
+                method=method,
+                seed=seed,
+                total_steps=budget["steps"],
+                eval_episodes=common["eval_episodes"],
+                checkpoint_every=common["checkpoint_every"],
+            )
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    def description(self, cfg: BatchConfig) -> str:
+        """``"batch <method> <env> s<seed>"``."""
+        return f"batch {cfg.method} {cfg.env} s{cfg.seed}"
+
+
+BATCH = register_kind(BatchKind())
+
+
+@dataclass
+class BatchResult(RunResult):
+    """What :func:`train_batch` produced: a :class:`~pporpe.runs.RunResult` whose unit of
+    work is an update."""
+
+    @property
+    def updates(self) -> int:
+        """Updates done in all."""
+        return self.chunks
+
+    @property
+    def last_stats(self) -> dict[str, float]:
+        """The last update's :class:`UpdateStats` as floats (empty when nothing ran)."""
+        return self.last_scalars
+
+
+def train_batch(
+    cfg: BatchConfig,
+    run_dir: str | Path,
+    progress: bool = True,
+    on_update: Callable[[BatchLearner, UpdateStats, float], None] | None = None,
+) -> BatchResult:
+    """Train batch PPO / PPO-RB / PPO-RPE as configured, writing everything into ``run_dir``.
+
+    The one run loop (:func:`pporpe.runs.train`): ``config.json`` first (with
+    ``"kind": "batch"``), ``episodes.csv``, ``tensorboard/`` (episode and ``update/*``
+    scalars), ``checkpoint.pt`` (every ``checkpoint_every`` updates and at the end),
+    ``evaluation.json`` and ``done.json``; resumes exactly from a checkpoint.
+
+    ``on_update(learner, stats, train_time)`` is called after every update (e.g. for
+    evaluations during training) with the training seconds so far; its own time is not
+    counted in ``train_time`` or the records' ``wall_time``.
+    """
+
+    def on_chunk(trainer: Trainer, report: Progress, t: float) -> None:
+        assert isinstance(trainer, BatchTrainer) and trainer.last_stats is not None
+        assert on_update is not None
+        on_update(trainer.learner, trainer.last_stats, t)
+
+    result = train(cfg, run_dir, progress, on_chunk=on_chunk if on_update else None)
+    return BatchResult(**result.__dict__)
+
+
+def load_batch_learner(
+    run_dir: str | Path, build_envs: bool = False
+) -> tuple[BatchConfig, BatchLearner]:
+    """Rebuild the learner of a batch run folder from its config and latest checkpoint.
+
+    With ``build_envs=False`` (enough for :meth:`BatchLearner.act_deterministic`) a single
+    sub-environment is built and the saved episodes are not replayed.
+    """
+    kind, cfg = read_config(run_dir)
+    if kind.name != "batch":
+        raise ValueError(f"{run_dir} holds a run of kind {kind.name!r}, not 'batch'")
+    state = load_checkpoint(run_dir)
+    if not build_envs:
+        return cfg, _policy_learner(cfg, state)
+    learner = BatchLearner(cfg)
+    learner.load_state_dict(state["learner"])
+    return cfg, learner
+
+
+def evaluate_learner(learner: BatchLearner, episodes: int, seed: int | None = None) -> EvalResult:
+    """Test episodes of the deterministic policy via :func:`pporpe.evaluation.evaluate_policy`.
+
+    ``seed`` defaults to the training seed plus :data:`~pporpe.evaluation.EVAL_SEED_OFFSET`.
+    """
+    if seed is None:
+        seed = learner.cfg.seed + EVAL_SEED_OFFSET
+    return evaluate_policy(learner.act_deterministic, learner.cfg.env, episodes, seed)

@@ -1,0 +1,183 @@
+"""Settings of the paper's online learner (:class:`OnlineConfig`) and of one online run
+(:class:`TrainConfig`): typed, frozen, validated in ``__post_init__``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from ..config import (
+    Activation,
+    Method,
+    PolicyKind,
+    RPEForm,
+    is_int,
+    is_real,
+    require,
+    validate_network_fields,
+    validate_surrogate_fields,
+)
+
+__all__ = ["OnlineConfig", "TrainConfig"]
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Settings of the paper's online actor-critic learner (Alg. 1, Table 1).
+
+    Defaults are the paper's. Optimiser constants the paper leaves at "default" are
+    documented in :class:`pporpe.online.optim.TDAmsProp`.
+    """
+
+    method: Method = "rpe"
+    """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback) or ``"rpe"`` (relative Pearson)."""
+    eps: float = 0.1
+    """Threshold parameter epsilon, in (0, 1)."""
+    beta: float = 0.5
+    """PPO-RPE mixture ratio beta, in [0, 1] with beta*(1+eps) < 1."""
+    eta: float = 0.3
+    """PPO-RB rollback slope eta >= 0 (ignored by the other methods)."""
+    rpe_form: RPEForm = "derived"
+    """A~ of PPO-RPE: ``"derived"`` (exact derivative, default) or the paper's ``"printed"`` eq."""
+    gamma: float = 0.99
+    """Discount factor gamma, in [0, 1)."""
+    lr: float = 3e-4
+    """Learning rate alpha of td-AmsProp, > 0."""
+    opt_betas: tuple[float, float] = (0.9, 0.999)
+    """td-AmsProp (beta1, beta2): momentum and second-moment rates, each in [0, 1)."""
+    opt_eps: float = 1e-8
+    """td-AmsProp denominator epsilon, > 0."""
+    k_dof: float = 1.0
+    """t-momentum degrees of freedom per parameter, > 0 (``inf`` gives LaProp)."""
+    amsgrad_decay: float = 0.999
+    """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none)."""
+    tau: float = 0.3
+    """t-soft target update rate tau, in (0, 1]."""
+    nu: float = 1.0
+    """t-soft degrees of freedom nu > 0 (``inf`` gives Polyak averaging)."""
+    lambdas: tuple[float, float] = (0.5, 0.95)
+    """Maximum trace decays (lambda_max1, lambda_max2) of the two time scales, in [0, 1]."""
+    kappa: float = 10.0
+    """Sensitivity kappa >= 0 of the adaptive trace decay exp(-kappa * divergence)."""
+    beta_td: float = 0.01
+    """Gain beta_TD >= 0 of TD regularisation (Parisi et al. 2019)."""
+    beta_de: float = 0.01
+    """Gain beta_DE >= 0 of entropy regularisation (SAC-style)."""
+    reward_scale: float | None = None
+    """Multiplier of rewards; ``None`` means 1 - gamma (the author's test bed)."""
+    layers: int = 5
+    """Hidden layers L of each network, >= 1."""
+    units: int = 100
+    """Units N per hidden layer, >= 1."""
+    layer_norm: bool = True
+    """LayerNorm after each hidden linear layer."""
+    activation: Activation = "swish"
+    """Hidden activation: ``"swish"`` (x*sigmoid(x)), ``"relu"`` or ``"tanh"``."""
+    policy: PolicyKind = "student_t"
+    """Policy distribution: diagonal ``"student_t"`` (paper) or ``"normal"``."""
+    compile: bool = False
+    """Compile the forward pass and loss with ``torch.compile`` (5-30% faster on a 2-core CPU
+    after a compile of tens of seconds; see docs/online-learner.md)."""
+
+    def __post_init__(self) -> None:
+        validate_surrogate_fields(self)
+        for name in ("gamma", "lr", "opt_eps", "k_dof", "tau", "nu"):
+            require(is_real(getattr(self, name)), name, getattr(self, name), "a number")
+        require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
+        require(0.0 < self.lr < math.inf, "lr", self.lr, "a finite number > 0")
+        require(
+            len(self.opt_betas) == 2 and all(is_real(b) and 0.0 <= b < 1.0 for b in self.opt_betas),
+            "opt_betas",
+            self.opt_betas,
+            "two numbers in [0, 1)",
+        )
+        require(self.opt_eps > 0.0, "opt_eps", self.opt_eps, "> 0")
+        require(self.k_dof > 0.0, "k_dof", self.k_dof, "> 0 (inf allowed)")
+        require(
+            is_real(self.amsgrad_decay) and 0.0 <= self.amsgrad_decay <= 1.0,
+            "amsgrad_decay",
+            self.amsgrad_decay,
+            "in [0, 1]",
+        )
+        require(0.0 < self.tau <= 1.0, "tau", self.tau, "in (0, 1]")
+        require(self.nu > 0.0, "nu", self.nu, "> 0 (inf allowed)")
+        require(
+            len(self.lambdas) == 2 and all(is_real(x) and 0.0 <= x <= 1.0 for x in self.lambdas),
+            "lambdas",
+            self.lambdas,
+            "two numbers in [0, 1]",
+        )
+        require(
+            is_real(self.kappa) and 0.0 <= self.kappa < math.inf,
+            "kappa",
+            self.kappa,
+            "a finite number >= 0",
+        )
+        for name in ("beta_td", "beta_de"):
+            v = getattr(self, name)
+            require(is_real(v) and 0.0 <= v < math.inf, name, v, "a finite number >= 0")
+        require(
+            self.reward_scale is None
+            or (is_real(self.reward_scale) and 0.0 < self.reward_scale < math.inf),
+            "reward_scale",
+            self.reward_scale,
+            "None or a finite number > 0",
+        )
+        validate_network_fields(self)
+
+    @property
+    def effective_reward_scale(self) -> float:
+        """The reward multiplier in use: ``reward_scale`` or 1 - gamma."""
+        return 1.0 - self.gamma if self.reward_scale is None else self.reward_scale
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run: which task, how long, where, and the learner's settings."""
+
+    env: str = "pendulum"
+    """Task: an alias (pendulum, swingup, halfcheetah, ant) or a Gymnasium id with Box actions."""
+    seed: int = 0
+    """Seed of the networks, the sampling and the environment, >= 0."""
+    episodes: int | None = 200
+    """Training length in episodes (>= 1); ``None`` when ``steps`` sets it."""
+    steps: int | None = None
+    """Training length in environment steps (>= 1); ``None`` when ``episodes`` sets it."""
+    checkpoint_every: int = 10
+    """Write a checkpoint every this many episodes (>= 1), and at the end."""
+    eval_episodes: int = 50
+    """Test episodes after training (>= 0; the paper's score is the median of 50)."""
+    learner: OnlineConfig = field(default_factory=OnlineConfig)
+    """Settings of the online learner."""
+
+    def __post_init__(self) -> None:
+        require(isinstance(self.env, str) and bool(self.env), "env", self.env, "a task name")
+        require(is_int(self.seed) and self.seed >= 0, "seed", self.seed, "an int >= 0")
+        require(
+            (self.episodes is None) != (self.steps is None),
+            "episodes/steps",
+            (self.episodes, self.steps),
+            "exactly one of the two set",
+        )
+        if self.episodes is not None:
+            require(
+                is_int(self.episodes) and self.episodes >= 1,
+                "episodes",
+                self.episodes,
+                "an int >= 1",
+            )
+        if self.steps is not None:
+            require(is_int(self.steps) and self.steps >= 1, "steps", self.steps, "an int >= 1")
+        require(
+            is_int(self.checkpoint_every) and self.checkpoint_every >= 1,
+            "checkpoint_every",
+            self.checkpoint_every,
+            "an int >= 1",
+        )
+        require(
+            is_int(self.eval_episodes) and self.eval_episodes >= 0,
+            "eval_episodes",
+            self.eval_episodes,
+            "an int >= 0",
+        )
+        require(isinstance(self.learner, OnlineConfig), "learner", self.learner, "an OnlineConfig")

@@ -1,0 +1,96 @@
+"""A run folder on disk: what it holds, and how it is opened, checked and read back.
+
+A run folder holds:
+
+* ``config.json``     ``{"kind": <learner kind>, ...every setting}``, written before any work;
+* ``episodes.csv``    one row per training episode (:class:`~pporpe.runs.logger.EpisodeRecord`);
+* ``tensorboard/``    the same scalars for TensorBoard;
+* ``checkpoint.pt``   the trainer's state, the records and the wall time, written atomically;
+* ``evaluation.json`` median / mean / IQR of the test episodes (when requested);
+* ``done.json``       written last: the run is complete, with its counters.
+
+Folders written by pporpe 0.1.0 have no ``"kind"`` in ``config.json``: a batch run said
+``"learner": "batch"`` and an online run nested its learner settings under ``"learner"``.
+They are still read (:func:`read_config`), and resumed as the same run.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..config import config_from_dict, config_to_dict
+from ..io import atomic_path, atomic_write_json
+from .kinds import LearnerKind, get_kind
+
+__all__ = [
+    "CHECKPOINT",
+    "config_json",
+    "load_checkpoint",
+    "open_run_dir",
+    "read_config",
+    "save_checkpoint",
+]
+
+CHECKPOINT = "checkpoint.pt"
+
+
+def config_json(kind: LearnerKind, cfg: Any) -> dict[str, Any]:
+    """The ``config.json`` content of a run: its kind, then every setting."""
+    return {"kind": kind.name, **config_to_dict(cfg)}
+
+
+def _normalized(data: dict[str, Any]) -> dict[str, Any]:
+    """``config.json`` content in the current form (adds the kind of 0.1.0 folders)."""
+    if "kind" in data:
+        return data
+    if data.get("learner") == "batch":
+        return {"kind": "batch", **{k: v for k, v in data.items() if k != "learner"}}
+    return {"kind": "online", **data}
+
+
+def read_config(run_dir: str | Path) -> tuple[LearnerKind, Any]:
+    """The learner kind and run configuration saved in ``run_dir/config.json``."""
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise ValueError(f"{Path(run_dir)} is not a run folder (it has no config.json)")
+    data = _normalized(json.loads(path.read_text()))
+    kind = get_kind(data.pop("kind"))
+    return kind, config_from_dict(kind.config_type, data, str(path))
+
+
+def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, bool]:
+    """Create a run folder and write ``config.json`` first, or check that it matches.
+
+    Returns the folder and whether the run is complete (``done.json`` exists). A folder
+    that holds a run with a different config is refused, so results are never mixed.
+    """
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    path = run / "config.json"
+    if not path.exists():
+        atomic_write_json(path, config)
+    elif _normalized(json.loads(path.read_text())) != _normalized(config):
+        raise ValueError(
+            f"{run} holds a run with a different config; use another --out folder "
+            "or delete it to start over"
+        )
+    return run, (run / "done.json").exists()
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write a checkpoint atomically (``torch.save`` to a temporary file, then rename)."""
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
+    """The checkpoint of a run folder (``ValueError`` if it has none)."""
+    path = Path(run_dir) / CHECKPOINT
+    if not path.is_file():
+        raise ValueError(f"{Path(run_dir)} is not a run folder with a checkpoint ({CHECKPOINT})")
+    state: dict[str, Any] = torch.load(path, weights_only=False)
+    return state

@@ -1,0 +1,203 @@
+"""Learner kinds: how a learner plugs into the one run loop (:func:`pporpe.runs.train`).
+
+A *learner kind* names a run configuration type and knows how to build a
+:class:`Trainer` for it (the environment(s) and the learner, seeded), how to rebuild a
+trained policy from a checkpoint, and how a grid spec's settings become a run
+configuration. The run loop, the grid and the CLI only talk to this protocol, so a new
+learner is one registration away from ``pporpe train``, ``pporpe evaluate`` and
+``pporpe reproduce``.
+
+Built in: ``"online"`` (the paper's Alg. 1, :mod:`pporpe.online`) and ``"batch"``
+(batch PPO, :mod:`pporpe.batch`). They are imported lazily, on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+__all__ = [
+    "Episode",
+    "LearnerKind",
+    "NonFiniteError",
+    "Progress",
+    "Trainer",
+    "get_kind",
+    "kind_of",
+    "kinds",
+    "register_kind",
+]
+
+
+class NonFiniteError(RuntimeError):
+    """A non-finite observation, reward, loss or parameter stopped the run."""
+
+
+@dataclass(frozen=True)
+class Episode:
+    """A training episode that ended, as a trainer reports it (the loop adds its index
+    and wall time to make an :class:`~pporpe.runs.logger.EpisodeRecord`)."""
+
+    total_steps: int
+    """Environment steps taken by the run when it ended."""
+    ret: float
+    """Undiscounted return (unscaled rewards)."""
+    length: int
+    """Steps in the episode."""
+    reg_amount: float
+    """Mean sigma*(rho - rho_dagger) of the updates that learned from it."""
+    past_threshold: float
+    """Fraction of those updates whose ratio was past the surrogate's threshold."""
+    trace_decay: float
+    """Mean adaptive trace decay (1.0 for learners without traces)."""
+    ratio_dev: float
+    """Mean |rho - 1| of those updates."""
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What one :meth:`Trainer.advance` did."""
+
+    episodes: list[Episode]
+    """Episodes that ended (possibly none)."""
+    checkpoint_due: bool
+    """Whether the trainer's checkpoint cadence asks for a checkpoint now."""
+    bar_advance: int
+    """How far the progress bar moves (in the unit of :attr:`Trainer.bar_unit`)."""
+    scalars: Mapping[str, float] = field(default_factory=dict)
+    """Extra scalars to log (e.g. a batch update's statistics), at :attr:`total_steps`."""
+    total_steps: int = 0
+    """Environment steps of the run after this advance."""
+
+
+class Trainer(Protocol):
+    """One training run in progress: its environment(s) and its learner."""
+
+    bar_total: int
+    """Length of the run in the progress bar's unit."""
+    bar_unit: str
+    """``"ep"`` or ``"step"``."""
+
+    def advance(self) -> Progress:
+        """Do one unit of work (an episode, an update) and report it."""
+        ...
+
+    def finished(self) -> bool:
+        """Whether the run's budget is spent."""
+        ...
+
+    def bar_position(self) -> int:
+        """Where the progress bar stands."""
+        ...
+
+    def counters(self) -> dict[str, int]:
+        """Counters saved in ``done.json``: at least ``total_steps`` and ``chunks`` (units
+        of work done: episodes or updates)."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue exactly (the loop adds records and wall time)."""
+        ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        ...
+
+    def parameters_finite(self) -> bool:
+        """Whether every parameter is finite (checked before each checkpoint)."""
+        ...
+
+    def act_deterministic(self, obs: Any) -> np.ndarray:
+        """Test-time action for one raw observation."""
+        ...
+
+    def close(self) -> None:
+        """Release the environment(s)."""
+        ...
+
+
+class LearnerKind(Protocol):
+    """A learner that the run loop, the grid and the CLI can run."""
+
+    @property
+    def name(self) -> str:
+        """The kind's name, saved as ``"kind"`` in every run's ``config.json``."""
+        ...
+
+    @property
+    def config_type(self) -> type:
+        """The run configuration dataclass (with ``env``, ``seed``, ``eval_episodes``)."""
+        ...
+
+    def make_trainer(self, cfg: Any) -> Trainer:
+        """Build the environment(s) and learner of a fresh run (the loop seeds torch first)."""
+        ...
+
+    def load_policy(self, cfg: Any, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
+        """The deterministic policy of a checkpoint ``state``, as ``act(obs) -> action``."""
+        ...
+
+    def grid_config(
+        self,
+        env: str,
+        method: str,
+        seed: int,
+        budget: Mapping[str, int],
+        common: Mapping[str, int],
+        learner: Mapping[str, Any],
+        where: str,
+    ) -> Any:
+        """A run configuration from a grid spec: ``budget`` holds ``episodes`` or
+        ``steps``, ``common`` the spec's ``eval_episodes`` and ``checkpoint_every``, and
+        ``learner`` the spec's learner overrides. Errors name ``where``."""
+        ...
+
+    def description(self, cfg: Any) -> str:
+        """A short label for progress bars, e.g. ``"rpe pendulum s0"``."""
+        ...
+
+
+_BUILTIN = {"online": "pporpe.online.kind", "batch": "pporpe.batch.kind"}
+_KINDS: dict[str, LearnerKind] = {}
+
+
+def register_kind(kind: LearnerKind) -> LearnerKind:
+    """Make a learner kind known to the run loop, the grid and the CLI (returns it)."""
+    if not isinstance(getattr(kind, "name", None), str) or not kind.name:
+        raise ValueError(f"a learner kind needs a non-empty name; got {kind!r}")
+    _KINDS[kind.name] = kind
+    return kind
+
+
+def _load_builtins() -> None:
+    for name, module in _BUILTIN.items():
+        if name not in _KINDS:
+            importlib.import_module(module)  # the module registers its kind
+
+
+def kinds() -> list[str]:
+    """Names of every registered learner kind."""
+    _load_builtins()
+    return sorted(_KINDS)
+
+
+def get_kind(name: str) -> LearnerKind:
+    """The learner kind of that name; ``ValueError`` listing the known kinds otherwise."""
+    _load_builtins()
+    if name not in _KINDS:
+        raise ValueError(f"kind must be one of {sorted(_KINDS)}; got kind={name!r}")
+    return _KINDS[name]
+
+
+def kind_of(cfg: Any) -> LearnerKind:
+    """The learner kind whose run configuration type ``cfg`` is."""
+    _load_builtins()
+    for kind in _KINDS.values():
+        if isinstance(cfg, kind.config_type):
+            return kind
+    types = sorted(k.config_type.__name__ for k in _KINDS.values())
+    raise ValueError(f"no learner kind runs a {type(cfg).__name__}; expected one of {types}")
