@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from .online import OnlineConfig, OnlineLearner, TrainConfig
     from .runs import RunResult, load_policy, train
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _LAZY = {
     "OnlineConfig": "pporpe.online",
