@@ -208,7 +208,7 @@ episodes = 40
 """
 
 
-def _launch(spec: Path, out: Path) -> subprocess.Popen[bytes]:
+def _launch(spec: Path, out: Path, *extra: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
         [
             sys.executable,
@@ -221,6 +221,7 @@ def _launch(spec: Path, out: Path) -> subprocess.Popen[bytes]:
             "--workers",
             "2",
             "--quiet",
+            *extra,
         ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -257,3 +258,42 @@ def test_sigkill_mid_grid_then_resume_gives_complete_identical_records(tmp_path:
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(40))  # no gap, no duplicate
         assert got == records_of(ref, run.key)  # and the same numbers as uninterrupted
+
+
+POP_SPEC = KILL_SPEC.replace("seeds = [0]", "seeds = [0, 1]").replace(
+    "episodes = 40", "episodes = 30"
+)
+
+
+def test_sigkill_a_population_then_resume_gives_complete_identical_records(
+    tmp_path: Path,
+) -> None:
+    """Four runs through one worker's population of two slots (a slot is refilled when its
+    run finishes): killed mid-way and restarted, every run's records are complete and
+    equal to the uninterrupted grid's with the same packing."""
+    spec_path = write_spec(tmp_path, POP_SPEC, "pop.toml")
+    spec = load_spec(spec_path)
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=1, population=2, progress=False).ok
+    assert len(list((ref / "populations").glob("*/population.json"))) == 1
+    args = ("--workers", "1", "--population", "2", "--checkpoint-seconds", "0")
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out, *args)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until a run has a checkpoint with 8+ episodes
+        done = [r for r in spec.runs if (out / r.key / "done.json").exists()]
+        csvs = [len(read_records(c)) for c in out.glob("pendulum/*/seed*/episodes.csv")]
+        if done or (csvs and max(csvs) >= 8):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)
+    unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
+    assert len(unfinished) >= 2, "the kill came too late to test resuming"
+    proc = _launch(spec_path, out, *args)
+    assert proc.wait(timeout=300) == 0
+    for run in spec.runs:
+        got = records_of(out, run.key)
+        assert [r.episode for r in got] == list(range(30))
+        assert got == records_of(ref, run.key)

@@ -1,24 +1,41 @@
-"""The online learner (Alg. 1): step order, the three surrogates, signals, reliability."""
+"""The online learner (Algorithm 1) for one run: step order, the three surrogates, signals,
+reliability. (Members of a population: tests/test_population.py.)"""
 
 from __future__ import annotations
 
 import dataclasses
+import math
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
+from pporpe.nn.mlp import FlatMLP, flat_views, mlp
 from pporpe.online import OnlineLearner, StepStats
 from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.surrogates import surrogate_objective
 
-SMALL = dict(layers=2, units=16)
+SMALL = dict(layers=2, units=16, compile=False)
 
 
 def make(method: str, seed: int = 0, **kw: object) -> OnlineLearner:
-    torch.manual_seed(seed)
     cfg = OnlineConfig(method=method, **{**SMALL, **kw})  # type: ignore[arg-type]
-    return OnlineLearner(3, -np.ones(2), np.ones(2), cfg)
+    return OnlineLearner(3, -np.ones(2), np.ones(2), cfg, seed=seed)
+
+
+def nets(learner: OnlineLearner, theta: torch.Tensor) -> tuple[Any, list, list, Any]:
+    """The learner's networks as FlatMLPs over views of a flat ``theta`` (its layout)."""
+    cfg = learner.config
+    kw = dict(layers=cfg.layers, units=cfg.units, layer_norm=cfg.layer_norm)
+    pol_net = mlp(3, learner.population.head.raw_dim, **kw)  # type: ignore[arg-type]
+    val_net = mlp(3, 1, **kw)  # type: ignore[arg-type]
+    pol_shapes = [p.shape for p in pol_net.parameters()]
+    val_shapes = [p.shape for p in val_net.parameters()]
+    n_pol = sum(math.prod(s) for s in pol_shapes)
+    pol = flat_views(theta[:n_pol], pol_shapes)
+    val = flat_views(theta[n_pol:], val_shapes)
+    return FlatMLP(pol_net), pol, val, FlatMLP(val_net)
 
 
 def transitions(n: int, seed: int = 1) -> list[tuple[float, np.ndarray, bool, bool]]:
@@ -71,37 +88,30 @@ def test_same_seed_same_numbers() -> None:
 
 
 def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
-    """With lambda = 0 the optimiser receives grad[-obj(rho, A) + delta^2/2] exactly."""
+    """With lambda = 0 the optimiser receives grad[-obj(rho, A) + delta^2/2] exactly: the
+    trace r is the per-unit-signal gradient g, and the update's input is A g (policy) and
+    delta g (value)."""
     learner = make("rpe", lambdas=(0.0, 0.0), lr=1e-2)
+    pop = learner.population
     trans = transitions(3)
     learner.begin_episode(np.zeros(3, np.float32))
     learner.step(*trans[0])  # one update, so the next ratio differs from 1
 
-    captured: dict[str, torch.Tensor] = {}
-    original = learner.optimizer.step
-
-    def spy(closure: object = None) -> None:
-        assert learner.theta.grad is not None
-        captured["grad"] = learner.theta.grad.clone()
-        original()
-
     # recompute the expected gradient from the learner's pending state before it steps
     cfg = learner.config
-    assert learner._obs is not None and learner._u is not None and learner._logp_b is not None
-    obs_t, u_t, logp_b = learner._obs, learner._u, learner._logp_b
+    obs_t, u_t, logp_b = pop._obs[:1], pop._u[:1], pop._logp_b[:1]
     theta = learner.theta.detach().clone().requires_grad_(True)
-    from pporpe.nn.mlp import flat_views
-
-    pol = flat_views(theta[: learner.n_policy], [p.shape for p in learner.model.policy_params])
-    val = flat_views(theta[learner.n_policy :], learner.model.value_shapes)
+    policy_fn, pol, val, value_fn = nets(learner, theta)
+    _, _, tgt, _ = nets(learner, torch.cat([learner.theta[: -learner.target.numel()],
+                                            learner.target]))  # fmt: skip
     r, next_obs, term, trunc = trans[1]
     x1 = torch.as_tensor(next_obs).reshape(1, 3)
-    v = learner._value_fn(val, obs_t)[0, 0]
+    v = value_fn(val, obs_t)[0, 0]
     with torch.no_grad():
-        v_next = learner._value_fn(learner._tgt_views, x1)[0, 0]
-    logp = learner.head.log_prob(learner._policy_fn(pol, obs_t), u_t)[0]
+        v_next = value_fn(tgt, x1)[0, 0]
+    logp = pop.head.log_prob(policy_fn(pol, obs_t), u_t)[0]
     delta = r * cfg.effective_reward_scale + cfg.gamma * v_next - v.detach()
-    logp_a = logp.detach() - learner.action_map.log_abs_det_jacobian(u_t)[0]
+    logp_a = logp.detach() - pop.action_map.log_abs_det_jacobian(u_t)[0]
     adv = delta - (1 - cfg.gamma) * (cfg.beta_td * delta**2 + cfg.beta_de * logp_a)
     ratio = torch.exp(logp - logp_b[0])
     loss = (
@@ -110,9 +120,11 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
     )
     (expected,) = torch.autograd.grad(loss, theta)
 
-    learner.optimizer.step = spy  # type: ignore[method-assign]
-    learner.step(r, next_obs, term, trunc)
-    torch.testing.assert_close(captured["grad"], expected, rtol=1e-4, atol=1e-6)
+    stats, _ = learner.step(r, next_obs, term, trunc)
+    pi, vi = pop.lay.real_index
+    g = pop.G[:, 0].reshape(2, -1)  # this step's per-unit-signal gradient
+    received = torch.cat([stats.adv * g[0, pi], stats.delta * g[1, vi]])
+    torch.testing.assert_close(received, expected, rtol=1e-4, atol=1e-6)
 
 
 def test_termination_does_not_bootstrap_but_truncation_does() -> None:
@@ -123,8 +135,10 @@ def test_termination_does_not_bootstrap_but_truncation_does() -> None:
         learner = make("rpe", seed=5)
         learner.begin_episode(obs0)
         v0 = learner.value(obs0)
+        _, _, tgt, value_fn = nets(learner, torch.cat([learner.theta[: -learner.target.numel()],
+                                                       learner.target]))  # fmt: skip
         with torch.no_grad():
-            vt = learner._value_fn(learner._tgt_views, torch.as_tensor(nxt).reshape(1, 3))
+            vt = value_fn(tgt, torch.as_tensor(nxt).reshape(1, 3))
         s, _ = learner.step(1.0, nxt, term, trunc)
         deltas[name] = s.delta.item()
         scale = learner.config.effective_reward_scale
@@ -142,12 +156,9 @@ def test_state_dict_round_trip_continues_identically() -> None:
     a = make("rb", seed=2)
     run(a, trans[:5], np.zeros(3, np.float32))
     state = a.state_dict()
-    rng = torch.get_rng_state()
     b = make("rb", seed=99)
-    b.load_state_dict(state)
-    torch.set_rng_state(rng)
+    b.load_state_dict(state)  # parameters, optimiser, traces, t-soft and the random stream
     sa = run(a, trans[5:], np.ones(3, np.float32))
-    torch.set_rng_state(rng)
     sb = run(b, trans[5:], np.ones(3, np.float32))
     assert torch.equal(a.theta, b.theta)
     assert [s.as_dict() for s in sa] == [s.as_dict() for s in sb]
@@ -217,17 +228,20 @@ def test_flat_forward_equals_the_module_it_mirrors() -> None:
     torch.testing.assert_close(flat(list(net.parameters()), x), net(x))
 
 
-def test_learner_forward_uses_the_flat_buffer() -> None:
-    """Writing into learner.theta changes the networks: the views share its storage."""
+def test_learner_forward_uses_the_parameters_it_reports() -> None:
+    """Setting the flat parameters (theta's layout) changes the networks accordingly."""
     learner = make("rpe")
     obs = np.ones(3, np.float32)
     v0 = learner.value(obs)
-    with torch.no_grad():
-        learner.theta[learner.n_policy :].zero_()
+    theta = learner.theta
+    n_value = learner.target.numel()
+    theta[-n_value:] = 0.0
+    learner.population.set_member_theta(0, theta)
     assert v0 != 0.0 and learner.value(obs) == 0.0
+    assert torch.equal(learner.theta, theta) and not learner.target.any()
 
 
-def test_compiled_loss_matches_eager() -> None:
+def test_compiled_update_matches_eager() -> None:
     """compile=True computes the same update as eager (up to float rounding)."""
     trans = transitions(4)
     results = []

@@ -62,7 +62,11 @@ def td_error(reward: Tensor, next_value: Tensor, value: Tensor, discount: Tensor
 
 
 def regularized_advantage(
-    delta: Tensor, log_prob: Tensor, gamma: float, beta_td: float, beta_de: float
+    delta: Tensor,
+    log_prob: Tensor,
+    one_minus_gamma: float | Tensor,
+    beta_td: float | Tensor,
+    beta_de: float | Tensor,
 ) -> Tensor:
     r"""The online learner's advantage with TD and entropy regularisation folded in.
 
@@ -70,6 +74,8 @@ def regularized_advantage(
 
     The entropy term (weight ``beta_de``, SAC-style) rewards unlikely actions; the TD term
     (weight ``beta_td``, after Parisi et al. 2019) penalises large TD errors. ``log_prob``
-    is the log-density of the action taken.
+    is the log-density of the action taken. ``one_minus_gamma`` is 1 - gamma, passed as
+    such (computed in float64 where gamma is a Python float); the weights may be
+    per-member ``[K]`` tensors.
     """
-    return delta - (1.0 - gamma) * (beta_td * delta * delta + beta_de * log_prob)
+    return delta - one_minus_gamma * (beta_td * delta * delta + beta_de * log_prob)

@@ -143,6 +143,8 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
         f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
     )
+    from .experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS, DEFAULT_POPULATION
+
     outcome = reproduce(
         spec,
         args.out,
@@ -150,6 +152,12 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         workers=args.workers,
         address=args.address,
         progress=not args.quiet,
+        population=args.population or DEFAULT_POPULATION,
+        checkpoint_seconds=(
+            DEFAULT_CHECKPOINT_SECONDS
+            if args.checkpoint_seconds is None
+            else args.checkpoint_seconds
+        ),
     )
     print(
         f"{len(outcome.done)} runs done ({len(outcome.skipped)} were already done), "
@@ -186,6 +194,16 @@ def _nonneg_int(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be an int >= 0; got {value}")
+    return value
+
+
+def _nonneg_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not (value >= 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
     return value
 
 
@@ -309,6 +327,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--address",
         default=None,
         help="Ray cluster address HOST:PORT (default: RAY_ADDRESS or a local Ray)",
+    )
+    rp.add_argument(
+        "--population",
+        type=_positive_int,
+        default=None,
+        help="online runs of one task trained at once by one worker (default 15)",
+    )
+    rp.add_argument(
+        "--checkpoint-seconds",
+        type=_nonneg_float,
+        default=None,
+        help="least seconds between two checkpoints of a population (default 60)",
     )
     rp.add_argument("--report", action="store_true", help="write the report when done")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")

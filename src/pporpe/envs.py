@@ -28,6 +28,7 @@ first connects, on its first ``reset``; those are not silenced.)
 from __future__ import annotations
 
 import contextlib
+import copy
 import ctypes
 import importlib
 import os
@@ -39,7 +40,7 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["ALIASES", "env_spec_summary", "make_env", "resolve_env_id"]
+__all__ = ["ALIASES", "ReplayableEnv", "env_spec_summary", "make_env", "resolve_env_id"]
 
 ALIASES: dict[str, str] = {
     "pendulum": "InvertedPendulumBulletEnv-v0",
@@ -208,3 +209,52 @@ def env_spec_summary(env: gymnasium.Env) -> dict[str, Any]:
         "action_high": [float(x) for x in np.asarray(act_space.high).reshape(-1)],
         "max_episode_steps": spec.max_episode_steps if spec is not None else None,
     }
+
+
+class ReplayableEnv(gymnasium.Wrapper):
+    """Records how the current episode was reached, so that a checkpoint can rebuild it.
+
+    On ``reset`` it keeps the seed (or the environment's RNG state when no seed is given)
+    and on ``step`` every action; :meth:`replay_record` returns them and
+    :meth:`replay_apply` replays a record on a fresh environment.
+    """
+
+    def __init__(self, env: gymnasium.Env) -> None:
+        super().__init__(env)
+        self._start: dict[str, Any] = {}
+        self._actions: list[np.ndarray] = []
+        self.replay_pending: dict[str, Any] | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        rng = None
+        if seed is None:
+            rng = copy.deepcopy(self.env.unwrapped.np_random.bit_generator.state)
+        self._start = {"seed": seed, "rng": rng, "options": options}
+        self._actions = []
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action: Any) -> Any:
+        self._actions.append(np.array(action, copy=True))
+        return self.env.step(action)
+
+    def replay_record(self) -> dict[str, Any]:
+        """The current episode's start and actions (a copy)."""
+        acts = np.stack(self._actions) if self._actions else np.zeros((0,))
+        return {**copy.deepcopy(self._start), "actions": acts}
+
+    def replay_apply(self) -> Any:
+        """Rebuild the episode in :attr:`replay_pending` (set it first, e.g. through a vector
+        environment's ``set_attr``); return its current observation."""
+        rec = self.replay_pending
+        assert rec is not None
+        self.replay_pending = None
+        return self.replay(rec)
+
+    def replay(self, rec: dict[str, Any]) -> Any:
+        """Rebuild the episode of a :meth:`replay_record`; return its current observation."""
+        if rec["rng"] is not None:
+            self.env.unwrapped.np_random.bit_generator.state = rec["rng"]
+        obs = self.reset(seed=rec["seed"], options=rec["options"])[0]
+        for a in rec["actions"]:
+            obs = self.step(a)[0]
+        return obs

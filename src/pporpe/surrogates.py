@@ -244,7 +244,7 @@ def rpe_surrogate_advantage(
     denom_pos = eps * (beta * eps - 2.0 * (1.0 - beta * (1.0 + eps)))
     if abs(denom_pos) < 1e-12:
         raise ValueError(
-            "the printed form of eq. grad_rpe_thre divides by zero for A > 0 at "
+            "the printed form of eq. (16) (grad_rpe_thre) divides by zero for A > 0 at "
             f"beta=2/(2+3*eps); got beta={beta!r}, eps={eps!r}"
         )
     denom = sigma * eps * (beta * sigma * eps - 2.0 * (1.0 - beta * (1.0 + sigma * eps)))

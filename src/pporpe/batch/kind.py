@@ -32,42 +32,70 @@ __all__ = [
 
 
 class BatchTrainer:
-    """One batch run around a :class:`BatchLearner`; a unit of work is one update
-    (a rollout, then its minibatch epochs)."""
+    """One batch run around a :class:`BatchLearner` (one slot); a unit of work is one
+    update (a rollout, then its minibatch epochs)."""
 
-    bar_unit = "step"
+    capacity = 1
 
-    def __init__(self, cfg: BatchConfig) -> None:
-        self.cfg = cfg
-        self.learner = BatchLearner(cfg)
-        self.bar_total = cfg.n_updates * cfg.rollout_size
+    def __init__(self) -> None:
+        self.learner: BatchLearner | None = None
         self.last_stats: UpdateStats | None = None
 
-    def finished(self) -> bool:
+    def _learner(self, slot: int) -> BatchLearner:
+        if slot != 0 or self.learner is None:
+            raise RuntimeError(f"slot {slot} holds no run")
+        return self.learner
+
+    def start(self, slot: int, cfg: BatchConfig, state: dict[str, Any] | None) -> None:
+        """Build the learner and its environments (seeded), then restore ``state``."""
+        if slot != 0 or self.learner is not None:
+            raise RuntimeError("a batch trainer holds one run, in slot 0")
+        torch.manual_seed(cfg.seed)
+        self.learner = BatchLearner(cfg)
+        if state is not None:
+            self.learner.load_state_dict(state["learner"])
+            torch.set_rng_state(state["torch_rng"])
+
+    def stop(self, slot: int) -> None:
+        """Close the vector environment and free the slot."""
+        self._learner(slot).close()
+        self.learner = None
+
+    def close(self) -> None:
+        """Close the vector environment, if a run is in the slot."""
+        if self.learner is not None:
+            self.stop(0)
+
+    def finished(self, slot: int) -> bool:
         """Whether every update is done."""
-        return self.learner.updates >= self.cfg.n_updates
+        learner = self._learner(slot)
+        return learner.updates >= learner.cfg.n_updates
 
-    def bar_position(self) -> int:
+    def bar_position(self, slot: int) -> int:
         """Environment steps done."""
-        return self.learner.total_steps
+        return self._learner(slot).total_steps
 
-    def counters(self) -> dict[str, int]:
+    def counters(self, slot: int) -> dict[str, int]:
         """Updates (the unit of work) and environment steps done."""
-        updates = self.learner.updates
-        return {"total_steps": self.learner.total_steps, "chunks": updates, "updates": updates}
+        learner = self._learner(slot)
+        updates = learner.updates
+        return {"total_steps": learner.total_steps, "chunks": updates, "updates": updates}
 
-    def advance(self) -> Progress:
+    def advance(self) -> dict[int, Progress]:
         """Collect one rollout and learn from it.
 
         Episodes that end during rollout k get the diagnostics of update k, the update
         that learns from them. ``trace_decay`` is 1.0: batch PPO has no eligibility
         traces (1.0 = no decay), and a number (not NaN) keeps records comparable.
         """
-        learner = self.learner
-        finished = learner.collect_rollouts()
-        stats = learner.train()
-        if not math.isfinite(float(stats.policy_loss) + float(stats.value_loss)):
-            raise NonFiniteError(f"non-finite loss at update {learner.updates}")
+        learner = self._learner(0)
+        try:
+            finished = learner.collect_rollouts()
+            stats = learner.train()
+            if not math.isfinite(float(stats.policy_loss) + float(stats.value_loss)):
+                raise NonFiniteError(f"non-finite loss at update {learner.updates}")
+        except NonFiniteError as exc:
+            return {0: Progress([], error=str(exc))}
         self.last_stats = stats
         reg, past, dev = (
             float(stats.reg_amount),
@@ -86,34 +114,27 @@ class BatchTrainer:
             )
             for ep in finished
         ]
-        return Progress(
-            episodes=episodes,
-            checkpoint_due=learner.updates % self.cfg.checkpoint_every == 0,
-            bar_advance=self.cfg.rollout_size,
-            scalars=stats.as_dict(),
-            total_steps=learner.total_steps,
-        )
+        return {
+            0: Progress(
+                episodes=episodes,
+                checkpoint_due=learner.updates % learner.cfg.checkpoint_every == 0,
+                bar_advance=learner.cfg.rollout_size,
+                scalars=stats.as_dict(),
+                total_steps=learner.total_steps,
+            )
+        }
 
-    def state_dict(self) -> dict[str, Any]:
+    def state(self, slot: int) -> dict[str, Any]:
         """The learner (with its environments' replay records) and the torch RNG state."""
-        return {"learner": self.learner.state_dict(), "torch_rng": torch.get_rng_state()}
+        return {"learner": self._learner(slot).state_dict(), "torch_rng": torch.get_rng_state()}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`, replaying every sub-environment's episode."""
-        self.learner.load_state_dict(state["learner"])
-        torch.set_rng_state(state["torch_rng"])
-
-    def parameters_finite(self) -> bool:
+    def parameters_finite(self, slot: int) -> bool:
         """Whether every parameter is finite."""
-        return self.learner.model.parameters_finite()
+        return self._learner(slot).model.parameters_finite()
 
-    def act_deterministic(self, obs: Any) -> np.ndarray:
+    def policy(self, slot: int) -> Callable[[Any], np.ndarray]:
         """The policy's location, bounded, with frozen observation statistics."""
-        return self.learner.act_deterministic(obs)
-
-    def close(self) -> None:
-        """Close the vector environment."""
-        self.learner.close()
+        return self._learner(slot).act_deterministic
 
 
 def _policy_learner(cfg: BatchConfig, state: dict[str, Any]) -> BatchLearner:
@@ -133,9 +154,17 @@ class BatchKind:
     name = "batch"
     config_type = BatchConfig
 
-    def make_trainer(self, cfg: BatchConfig) -> BatchTrainer:
-        """A fresh run (torch is already seeded by the loop)."""
-        return BatchTrainer(cfg)
+    def make_trainer(self, cfg: BatchConfig, capacity: int) -> BatchTrainer:
+        """A trainer of one slot (``capacity`` is ignored)."""
+        return BatchTrainer()
+
+    def budget(self, cfg: BatchConfig) -> tuple[int, str]:
+        """Environment steps, in whole rollouts."""
+        return cfg.n_updates * cfg.rollout_size, "step"
+
+    def pack_key(self, cfg: BatchConfig) -> Any:
+        """Batch runs do not share a trainer: every run is its own key."""
+        return id(cfg)
 
     def load_policy(self, cfg: BatchConfig, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
         """The deterministic policy of a checkpoint."""
@@ -216,7 +245,7 @@ def train_batch(
 
     def on_chunk(trainer: Trainer, report: Progress, t: float) -> None:
         assert isinstance(trainer, BatchTrainer) and trainer.last_stats is not None
-        assert on_update is not None
+        assert on_update is not None and trainer.learner is not None
         on_update(trainer.learner, trainer.last_stats, t)
 
     result = train(cfg, run_dir, progress, on_chunk=on_chunk if on_update else None)

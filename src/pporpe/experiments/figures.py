@@ -1,9 +1,9 @@
 """The paper's analytic figures, drawn from the functions of :mod:`pporpe.surrogates`.
 
-* :func:`relative_ratio_figure` - Fig. img_symmetric: the relative density ratio
-  rho_beta over (pi, pi_b) in 3D and 2D, beside the raw ratio.
-* :func:`negative_loss_figure` - Fig. img_loss: rho * A^dagger against rho for PPO,
-  PPO-RB and PPO-RPE, for A > 0 and A < 0, with the thresholds marked.
+* :func:`relative_ratio_figure` - the paper's Fig. 1 (``img_symmetric``, Sec. II-C): the
+  relative density ratio rho_beta over (pi, pi_b) in 3D and 2D, beside the raw ratio.
+* :func:`negative_loss_figure` - the paper's Fig. 2 (``img_loss``, Sec. III-A): rho * A^dagger
+  against rho for PPO, PPO-RB and PPO-RPE, for A > 0 and A < 0, with the thresholds marked.
 
 :func:`draw_analytic_figures` writes both as PNG and PDF.
 """
@@ -39,7 +39,9 @@ METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-"}  # dashed: identical curves
 
 
 def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
-    """Fig. img_symmetric: rho_beta = pi / (beta*pi + (1-beta)*pi_b) over (pi, pi_b).
+    """The paper's Fig. 1 (``img_symmetric``): rho_beta = pi / (beta*pi + (1-beta)*pi_b).
+
+    Drawn over (pi, pi_b).
 
     (a) 3D surfaces of the raw ratio rho (clipped for display) and of rho_beta;
     (b) 2D view of rho_beta, which is bounded by 1/beta and, for beta = 0.5, symmetric
@@ -90,7 +92,7 @@ def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
 def negative_loss_figure(
     eps: float = 0.1, beta: float = 0.5, eta: float = 0.3, rho_max: float = 2.0
 ) -> Figure:
-    """Fig. img_loss: the per-sample objective rho * A^dagger against rho, A = +1 and A = -1.
+    """The paper's Fig. 2 (``img_loss``): the objective rho * A^dagger against rho, A = +-1.
 
     PPO and PPO-RB have symmetric thresholds 1 -/+ eps on rho; PPO-RPE has its vertices at
     the asymmetric thresholds of :func:`pporpe.surrogates.ratio_thresholds`.

@@ -4,9 +4,9 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``;
 
 * ``summary.md`` / ``summary.csv``: per task and method, the mean and 95% confidence
   interval (Student t) over seeds of the per-seed median test score, and the seed count;
-* ``fig_summary``: bar summary of the scores (Fig. sim_summary);
-* ``fig_learning``: learning curves per task, mean over seeds with 95% bands (Fig. sim_learn);
-* ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. sim_isr_diff);
+* ``fig_summary``: bar summary of the scores (the paper's Fig. 3, ``sim_summary``);
+* ``fig_learning``: learning curves per task, mean over seeds, 95% bands (Fig. 4, ``sim_learn``);
+* ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);
 
 each figure as PNG and PDF. Unfinished or failed runs are left out and counted.
 """

@@ -34,9 +34,16 @@ from ..runs.folder import config_json
 from ..runs.kinds import get_kind, kind_of
 from .grid import GridSpec, RunSpec, spec_summary
 
-__all__ = ["GridOutcome", "reproduce", "run_one"]
+__all__ = ["GridOutcome", "Job", "plan_jobs", "reproduce", "run_job", "run_one"]
 
 BACKENDS = ("local", "ray")
+
+DEFAULT_POPULATION = 15
+"""Online runs trained at once by one worker (see benchmarks/throughput.py: the cost per
+run-step falls until about 15 runs and levels off after)."""
+
+DEFAULT_CHECKPOINT_SECONDS = 60.0
+"""At most one population checkpoint a minute: a population's state is megabytes."""
 
 
 @dataclass(frozen=True)
@@ -69,32 +76,121 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def run_one(run_dir: str, cfg_dict: dict[str, Any]) -> dict[str, Any]:
-    """Train and evaluate one run (in a worker); never raises, reports the status.
+def _failure(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0]
 
-    ``cfg_dict`` is the run's ``config.json`` content: its learner kind and settings.
+
+def run_job(
+    home: str,
+    runs: list[tuple[str, dict[str, Any]]],
+    population: int = 1,
+    checkpoint_seconds: float = 0.0,
+) -> list[dict[str, Any]]:
+    """Train a queue of runs of one task through one trainer of up to ``population`` slots
+    (in a worker); never raises, reports the status of every run.
+
+    ``runs`` holds ``(run_dir, config.json content)`` pairs; ``home`` keeps the queue's
+    ``population.json``. Every run folder is locked while the job holds it. A run that
+    fails alone leaves its message in ``error.txt``; if the whole job fails, every
+    unfinished run of it gets the traceback.
     """
-    path = Path(run_dir)
+    paths = [Path(d) for d, _ in runs]
     try:
-        data = dict(cfg_dict)
-        kind = get_kind(data.pop("kind"))
-        cfg: Any = config_from_dict(kind.config_type, data)
-        with _run_lock(path):
-            (path / "error.txt").unlink(missing_ok=True)
-            from ..runs.loop import train
+        cfgs: list[Any] = []
+        for _, cfg_dict in runs:
+            data = dict(cfg_dict)
+            kind = get_kind(data.pop("kind"))
+            cfgs.append(config_from_dict(kind.config_type, data))
+        with contextlib.ExitStack() as locks:
+            for path in paths:
+                locks.enter_context(_run_lock(path))
+            from ..runs.loop import run_queue
 
-            result = train(cfg, path, progress=False)
-        score = result.evaluation.median if result.evaluation is not None else None
-        return {"run_dir": run_dir, "status": "done", "score": score}
+            results = run_queue(
+                list(zip(cfgs, paths, strict=True)),
+                capacity=population,
+                home=home,
+                checkpoint_seconds=checkpoint_seconds if population > 1 else 0.0,
+            )
+        out: list[dict[str, Any]] = []
+        for d, res in zip((d for d, _ in runs), results, strict=True):
+            if res.error is not None:
+                out.append({"run_dir": d, "status": "failed", "error": res.error})
+            else:
+                score = res.evaluation.median if res.evaluation is not None else None
+                out.append({"run_dir": d, "status": "done", "score": score})
+        return out
     except Exception as exc:
         tb = traceback.format_exc()
-        with contextlib.suppress(OSError):
-            atomic_write_text(path / "error.txt", tb)
-        return {
-            "run_dir": run_dir,
-            "status": "failed",
-            "error": f"{type(exc).__name__}: {exc}".splitlines()[0],
-        }
+        failed: list[dict[str, Any]] = []
+        for path in paths:
+            if (path / "done.json").exists():
+                failed.append({"run_dir": str(path), "status": "done", "score": None})
+                continue
+            with contextlib.suppress(OSError):
+                atomic_write_text(path / "error.txt", tb)
+            failed.append({"run_dir": str(path), "status": "failed", "error": _failure(exc)})
+        return failed
+
+
+def run_one(run_dir: str, cfg_dict: dict[str, Any]) -> dict[str, Any]:
+    """Train and evaluate one run (in a worker); never raises, reports the status."""
+    return run_job(run_dir, [(run_dir, cfg_dict)])[0]
+
+
+@dataclass(frozen=True)
+class Job:
+    """Runs of one task and network shape that one worker trains through one trainer."""
+
+    home: str
+    """Folder of the job's ``population.json``."""
+    runs: list[tuple[str, dict[str, Any]]]
+    """``(run_dir, config.json content)`` in queue order."""
+    population: int
+    """Slots of the trainer: runs trained at once."""
+
+
+def plan_jobs(
+    runs: list[tuple[Path, Any]], out_dir: Path, population: int, workers: int
+) -> list[Job]:
+    """Pack runs into jobs: runs that can share a trainer (same kind, task and network
+    shape: :meth:`~pporpe.runs.kinds.LearnerKind.pack_key`) form a queue; a queue is split
+    into as many jobs as it takes to keep ``workers`` busy (at most one per run), and each
+    job trains up to ``population`` runs at once, refilling a slot when a run finishes.
+    The packing depends only on the spec, ``population``, ``workers`` and which runs are
+    unfinished."""
+    groups: dict[Any, list[tuple[Path, Any]]] = {}
+    for run_dir, cfg in runs:
+        kind = kind_of(cfg)
+        groups.setdefault((kind.name, kind.pack_key(cfg)), []).append((run_dir, cfg))
+    total = sum(len(g) for g in groups.values())
+    jobs: list[Job] = []
+    for members in groups.values():
+        kind = kind_of(members[0][1])
+        cap = population if kind.name == "online" else 1
+        n_jobs = max(1, round(workers * len(members) / total)) if total else 1
+        if cap == 1:
+            n_jobs = len(members)
+        n_jobs = min(n_jobs, len(members))
+        size = -(-len(members) // n_jobs)
+        for j in range(0, len(members), size):
+            chunk = members[j : j + size]
+            home = chunk[0][0] if len(chunk) == 1 else out_dir / "populations" / _job_name(chunk)
+            jobs.append(
+                Job(
+                    str(home),
+                    [(str(d), config_json(kind, c)) for d, c in chunk],
+                    min(cap, len(chunk)),
+                )
+            )
+    return jobs
+
+
+def _job_name(chunk: list[tuple[Path, Any]]) -> str:
+    first, last = chunk[0][0], chunk[-1][0]
+    return f"{first.parent.parent.name}-{len(chunk)}runs-{first.parent.name}-{first.name}-" + (
+        f"{last.parent.name}-{last.name}"
+    )
 
 
 def _worker_init() -> None:
@@ -139,27 +235,29 @@ class _Progress:
 
 
 def _run_local(
-    jobs: list[tuple[str, dict[str, Any]]], workers: int, progress: _Progress
+    jobs: list[Job], workers: int, progress: _Progress, checkpoint_seconds: float
 ) -> list[dict[str, Any]]:
     results: list[dict[str, Any]] = []
     ctx = get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
-        pending: set[Future[dict[str, Any]]] = {pool.submit(run_one, d, c) for d, c in jobs}
+        pending: set[Future[list[dict[str, Any]]]] = {
+            pool.submit(run_job, j.home, j.runs, j.population, checkpoint_seconds) for j in jobs
+        }
         progress.update(running=min(workers, len(pending)))
         while pending:
             finished, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
-                res = fut.result()
-                results.append(res)
-                ok = res["status"] == "done"
-                progress.update(
-                    running=min(workers, len(pending)), finished=int(ok), failed=int(not ok)
-                )
+                for res in fut.result():
+                    results.append(res)
+                    ok = res["status"] == "done"
+                    progress.update(
+                        running=min(workers, len(pending)), finished=int(ok), failed=int(not ok)
+                    )
     return results
 
 
 def _run_ray(
-    jobs: list[tuple[str, dict[str, Any]]], address: str | None, progress: _Progress
+    jobs: list[Job], address: str | None, progress: _Progress, checkpoint_seconds: float
 ) -> list[dict[str, Any]]:
     try:
         import ray
@@ -171,18 +269,18 @@ def _run_ray(
     if started_here:
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(run_one)
-        refs = [remote.remote(d, c) for d, c in jobs]
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        refs = [remote.remote(j.home, j.runs, j.population, checkpoint_seconds) for j in jobs]
         results: list[dict[str, Any]] = []
         total_cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         while refs:
             ready, refs = ray.wait(refs, num_returns=1)
-            res = ray.get(ready[0])
-            results.append(res)
-            ok = res["status"] == "done"
-            progress.update(
-                running=min(total_cpus, len(refs)), finished=int(ok), failed=int(not ok)
-            )
+            for res in ray.get(ready[0]):
+                results.append(res)
+                ok = res["status"] == "done"
+                progress.update(
+                    running=min(total_cpus, len(refs)), finished=int(ok), failed=int(not ok)
+                )
         return results
     finally:
         if started_here:
@@ -196,21 +294,35 @@ def reproduce(
     workers: int | None = None,
     address: str | None = None,
     progress: bool = True,
+    population: int = DEFAULT_POPULATION,
+    checkpoint_seconds: float = DEFAULT_CHECKPOINT_SECONDS,
 ) -> GridOutcome:
-    """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome."""
+    """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome.
+
+    Online runs of one task are trained ``population`` at a time by one worker
+    (:func:`plan_jobs`); their checkpoints are written at most every
+    ``checkpoint_seconds``.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}; got {backend!r}")
     if workers is not None and not (isinstance(workers, int) and workers >= 1):
         raise ValueError(f"workers must be an int >= 1; got {workers!r}")
     if address is not None and backend != "ray":
         raise ValueError("--address is only for --backend ray")
+    if not (isinstance(population, int) and not isinstance(population, bool) and population >= 1):
+        raise ValueError(f"population must be an int >= 1; got population={population!r}")
+    if not (isinstance(checkpoint_seconds, int | float) and checkpoint_seconds >= 0):
+        raise ValueError(
+            "checkpoint_seconds must be a number >= 0; "
+            f"got checkpoint_seconds={checkpoint_seconds!r}"
+        )
     out_dir = Path(out).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out_dir / "grid.json", spec_summary(spec))
 
     t0 = time.perf_counter()
     skipped: list[str] = []
-    jobs: list[tuple[str, dict[str, Any]]] = []
+    todo: list[tuple[Path, Any]] = []
     by_dir: dict[str, RunSpec] = {}
     for run in spec.runs:
         run_dir = out_dir / run.key
@@ -218,17 +330,18 @@ def reproduce(
         if (run_dir / "done.json").exists():
             skipped.append(run.key)
         else:
-            jobs.append((str(run_dir), config_json(kind_of(run.config), run.config)))
+            todo.append((run_dir, run.config))
+    n_workers = workers or os.cpu_count() or 1
+    jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
 
     bar = _Progress(len(spec.runs), len(skipped), progress)
     try:
         if not jobs:
             results: list[dict[str, Any]] = []
         elif backend == "local":
-            n = workers or os.cpu_count() or 1
-            results = _run_local(jobs, min(n, len(jobs)), bar)
+            results = _run_local(jobs, min(n_workers, len(jobs)), bar, checkpoint_seconds)
         else:
-            results = _run_ray(jobs, address, bar)
+            results = _run_ray(jobs, address, bar, checkpoint_seconds)
     finally:
         bar.close()
 

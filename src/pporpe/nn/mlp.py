@@ -1,4 +1,4 @@
-"""Fully connected networks as used in the paper (Table 1).
+"""Fully connected networks as used in the paper (Sec. IV-A, Table I).
 
 The paper's actor and critic are 5 fully connected layers of 100 units, each
 followed by layer normalisation and Swish (``x * sigmoid(x)``), and a linear

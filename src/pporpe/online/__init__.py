@@ -1,13 +1,17 @@
-"""The paper's online actor-critic learner (Alg. 1): one update per environment step.
+"""The paper's online actor-critic learner (Algorithm 1): one update per environment step.
 
-:class:`OnlineLearner` and its settings (:class:`OnlineConfig`, and :class:`TrainConfig`
-for a run), its components (:mod:`.traces`, :mod:`.tsoft`, :mod:`.optim`), and its
-learner kind ``"online"`` for the run loop (:mod:`.kind`).
+:class:`PopulationLearner` runs K >= 1 members in lockstep with stacked parameters
+(:mod:`.population`; its elementwise update :mod:`.update`, its per-member random
+streams :mod:`.noise`); :class:`OnlineLearner` is one member with scalar inputs. Settings:
+:class:`OnlineConfig`, and :class:`TrainConfig` for a run. The scalar components
+(:mod:`.traces`, :mod:`.tsoft`, :mod:`.optim`) are usable on their own. The learner kind
+``"online"`` of the run loop is :mod:`.kind`.
 """
 
 from .config import OnlineConfig, TrainConfig
-from .learner import OnlineLearner, StepStats
+from .learner import OnlineLearner
 from .optim import TDAmsProp
+from .population import PopulationLearner, StepStats
 from .traces import AdaptiveTraces
 from .tsoft import TSoftUpdate
 
@@ -15,6 +19,7 @@ __all__ = [
     "AdaptiveTraces",
     "OnlineConfig",
     "OnlineLearner",
+    "PopulationLearner",
     "StepStats",
     "TDAmsProp",
     "TSoftUpdate",

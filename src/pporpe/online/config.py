@@ -23,7 +23,7 @@ __all__ = ["OnlineConfig", "TrainConfig"]
 
 @dataclass(frozen=True)
 class OnlineConfig:
-    """Settings of the paper's online actor-critic learner (Alg. 1, Table 1).
+    """Settings of the paper's online actor-critic learner (Algorithm 1, Table I).
 
     Defaults are the paper's. Optimiser constants the paper leaves at "default" are
     documented in :class:`pporpe.online.optim.TDAmsProp`.

@@ -1,5 +1,12 @@
-"""The online learner as a learner kind of the run loop: acting on one environment,
-one episode per unit of work (:class:`OnlineTrainer`), and its registration ``"online"``."""
+"""The online learner as a learner kind of the run loop: K runs of one task in lockstep,
+each on its own environment (:class:`OnlineTrainer`), registered as ``"online"``.
+
+One unit of work is one environment step of every busy slot, learnt by one batched
+:meth:`~pporpe.online.population.PopulationLearner.step`. A run's checkpoint holds its
+member of the population (mid-episode included), its environment's replay record (the
+episode's reset seed or RNG state and the actions since), its counters and the
+statistics of the episode in progress, so it continues exactly where it stopped.
+"""
 
 from __future__ import annotations
 
@@ -11,11 +18,12 @@ import numpy as np
 import torch
 
 from ..config import config_from_dict
-from ..envs import env_spec_summary, make_env
-from ..runs.kinds import Episode, NonFiniteError, Progress, register_kind
+from ..envs import ReplayableEnv, env_spec_summary, make_env
+from ..runs.kinds import Episode, Progress, register_kind
 from ..surrogates import regularization_amount
 from .config import OnlineConfig, TrainConfig
-from .learner import OnlineLearner, StepStats
+from .learner import OnlineLearner
+from .population import PopulationLearner, StepStats
 
 __all__ = ["ONLINE", "OnlineKind", "OnlineTrainer", "episode_diagnostics"]
 
@@ -33,135 +41,243 @@ def episode_diagnostics(stats: StepStats, learner: OnlineConfig) -> dict[str, fl
     }
 
 
-def build_learner(env: Any, learner: OnlineConfig) -> OnlineLearner:
-    """An online learner sized for an environment's spaces."""
-    spec = env_spec_summary(env)
-    return OnlineLearner(spec["obs_dim"], spec["action_low"], spec["action_high"], learner)
+def _spaces(env_name: str) -> dict[str, Any]:
+    env = make_env(env_name)
+    try:
+        return env_spec_summary(env)
+    finally:
+        env.close()
 
 
-class OnlineTrainer:
-    """One online run: the environment loop around an :class:`OnlineLearner`.
-
-    A unit of work is one episode. The environment is reset at the *start* of an episode,
-    so a checkpoint taken between episodes holds the environment's RNG state before that
-    reset, and a resumed run draws the same start state.
-    """
+class _Slot:
+    """The run in one slot: its config, environment and the episode in progress."""
 
     def __init__(self, cfg: TrainConfig) -> None:
         self.cfg = cfg
-        self.env = make_env(cfg.env, seed=cfg.seed)
-        self.learner = build_learner(self.env, cfg.learner)
+        self.env = ReplayableEnv(make_env(cfg.env, seed=cfg.seed))
         self.episodes = 0
         self.total_steps = 0
-        self._obs: Any = self.env.reset(seed=cfg.seed)[0]
-        self.bar_unit = "ep" if cfg.episodes is not None else "step"
-        self.bar_total = int(cfg.episodes if cfg.episodes is not None else cfg.steps or 0)
+        self.action: np.ndarray | None = None  # next action; None: the episode must begin
+        self.steps: list[StepStats] = []  # this episode's step statistics
+        self.ret = 0.0
+        self.length = 0
 
     def finished(self) -> bool:
-        """Whether the budget (episodes or steps) is spent."""
         if self.cfg.episodes is not None:
             return self.episodes >= self.cfg.episodes
         return self.total_steps >= (self.cfg.steps or 0)
 
-    def bar_position(self) -> int:
-        """Episodes (or steps) done."""
-        return self.episodes if self.cfg.episodes is not None else self.total_steps
 
-    def counters(self) -> dict[str, int]:
-        """Episodes (the unit of work) and environment steps done."""
-        return {"total_steps": self.total_steps, "chunks": self.episodes}
+class OnlineTrainer:
+    """Up to ``capacity`` online runs of one task in lockstep (see the module docstring)."""
 
-    def advance(self) -> Progress:
-        """Train on one episode (cut short where a step budget ends)."""
-        cfg, env, learner = self.cfg, self.env, self.learner
-        episode = self.episodes
-        obs = self._obs if self._obs is not None else env.reset()[0]
-        self._obs = None
-        if not np.all(np.isfinite(obs)):
-            raise NonFiniteError(f"non-finite observation at episode {episode}, step 0")
-        action = learner.begin_episode(obs)
-        steps: list[StepStats] = []
-        ep_ret, length, done = 0.0, 0, False
-        while not done:
-            obs, reward, terminated, truncated, _ = env.step(action)
-            length += 1
-            reward = float(reward)
-            if not (math.isfinite(reward) and np.all(np.isfinite(obs))):
-                raise NonFiniteError(
-                    f"non-finite {'reward' if not math.isfinite(reward) else 'observation'}"
-                    f" at episode {episode}, step {length}"
-                )
-            stats, action = learner.step(reward, obs, terminated, truncated)
-            if not math.isfinite(float(stats.adv)):
-                raise NonFiniteError(
-                    f"non-finite loss (advantage) at episode {episode}, step {length}"
-                )
-            steps.append(stats)
-            ep_ret += reward
-            done = terminated or truncated
-            if cfg.steps is not None and self.total_steps + length >= cfg.steps:
-                break
-        self.total_steps += length
-        self.episodes += 1
-        diag = episode_diagnostics(StepStats.stack(steps), cfg.learner)
-        ep = Episode(total_steps=self.total_steps, ret=ep_ret, length=length, **diag)
-        return Progress(
-            episodes=[ep],
-            checkpoint_due=self.episodes % cfg.checkpoint_every == 0,
-            bar_advance=1 if cfg.episodes is not None else length,
-            total_steps=self.total_steps,
+    def __init__(self, cfg: TrainConfig, capacity: int) -> None:
+        spec = _spaces(cfg.env)
+        self.capacity = capacity
+        self.learner = PopulationLearner(
+            spec["obs_dim"],
+            spec["action_low"],
+            spec["action_high"],
+            [cfg.learner] * capacity,
+            list(range(capacity)),
+            compile_update=cfg.learner.compile,
         )
+        self.slots: list[_Slot | None] = [None] * capacity
 
-    def state_dict(self) -> dict[str, Any]:
-        """Learner, counters and both RNG states (taken between episodes)."""
-        return {
-            "learner": self.learner.state_dict(),
-            "episodes": self.episodes,
-            "total_steps": self.total_steps,
-            "torch_rng": torch.get_rng_state(),
-            "env_rng": self.env.unwrapped.np_random.bit_generator.state,
-        }
+    def _slot(self, slot: int) -> _Slot:
+        s = self.slots[slot]
+        if s is None:
+            raise RuntimeError(f"slot {slot} holds no run")
+        return s
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict` (also of checkpoints written by pporpe 0.1.0)."""
-        self.learner.load_state_dict(state["learner"])
-        self.episodes = int(state.get("episodes", len(state.get("records", []))))
-        self.total_steps = int(state["total_steps"])
-        torch.set_rng_state(state["torch_rng"])
-        self.env.unwrapped.np_random.bit_generator.state = state["env_rng"]
-        self._obs = None  # the next episode resets with the restored RNG
+    # -- runs in and out -------------------------------------------------------------
+    def start(self, slot: int, cfg: TrainConfig, state: dict[str, Any] | None) -> None:
+        """Begin a fresh run of ``cfg`` in ``slot`` or continue it from ``state``."""
+        s = _Slot(cfg)
+        if state is None:
+            self.learner.reset_member(slot, cfg.learner, cfg.seed)
+        elif "params" not in state["learner"]:
+            s.env.close()
+            raise ValueError(
+                "this run was started by pporpe 0.1.0, whose online learner sampled from "
+                "torch's global random stream; it cannot be continued exactly. Its policy "
+                "still evaluates (pporpe evaluate); train it again in a new folder"
+            )
+        else:
+            self.learner.load_member_state(slot, cfg.learner, state["learner"])
+            s.episodes, s.total_steps = int(state["episodes"]), int(state["total_steps"])
+            ep = state["episode"]
+            s.ret, s.length = float(ep["ret"]), int(ep["length"])
+            s.steps = [StepStats(*row) for row in zip(*ep["steps"], strict=True)]
+            if state["env"] is not None:  # mid-episode: rebuild the episode
+                s.env.replay(state["env"])
+                s.action = np.asarray(state["action"])
+            else:  # between episodes: the next reset draws from the saved RNG state
+                s.env.unwrapped.np_random.bit_generator.state = state["env_rng"]
+        self.slots[slot] = s
 
-    def parameters_finite(self) -> bool:
-        """Whether every parameter (online and target) is finite."""
-        return self.learner.parameters_finite()
-
-    def act_deterministic(self, obs: Any) -> np.ndarray:
-        """The policy's location, mapped into the action bounds."""
-        return self.learner.act_deterministic(obs)
+    def stop(self, slot: int) -> None:
+        """Free the slot (its environment is closed)."""
+        self._slot(slot).env.close()
+        self.slots[slot] = None
 
     def close(self) -> None:
-        """Close the environment."""
-        self.env.close()
+        """Close every environment."""
+        for slot, s in enumerate(self.slots):
+            if s is not None:
+                self.stop(slot)
+
+    # -- one step of every run ------------------------------------------------------
+    def advance(self) -> dict[int, Progress]:
+        """One environment step of every busy run, learnt in one batched update."""
+        learner, K = self.learner, self.capacity
+        busy = [k for k, s in enumerate(self.slots) if s is not None]
+        reports: dict[int, Progress] = {}
+        errors: dict[int, str] = {}
+        starting = [k for k in busy if self._slot(k).action is None]
+        if starting:
+            first_obs = []
+            for k in starting:
+                s = self._slot(k)
+                seed = s.cfg.seed if s.episodes == 0 else None
+                obs = s.env.reset(seed=seed)[0]
+                if not np.all(np.isfinite(obs)):
+                    errors[k] = f"non-finite observation at episode {s.episodes}, step 0"
+                first_obs.append(np.nan_to_num(obs))
+            actions = learner.begin_episode(starting, np.stack(first_obs))
+            for k, a in zip(starting, actions, strict=True):
+                self._slot(k).action = a
+        reward = np.zeros(K)
+        next_obs = np.zeros((K, learner.obs_dim))
+        terminated = np.zeros(K, dtype=bool)
+        truncated = np.zeros(K, dtype=bool)
+        active = np.zeros(K, dtype=bool)
+        for k in busy:
+            if k in errors:
+                continue
+            s = self._slot(k)
+            obs, r, term, trunc, _ = s.env.step(s.action)
+            s.length += 1
+            r = float(r)
+            if not (math.isfinite(r) and np.all(np.isfinite(obs))):
+                what = "reward" if not math.isfinite(r) else "observation"
+                errors[k] = f"non-finite {what} at episode {s.episodes}, step {s.length}"
+                continue
+            reward[k], next_obs[k], terminated[k], truncated[k] = r, obs, term, trunc
+            active[k] = True
+            s.ret += r
+        stats, next_actions = learner.step(reward, next_obs, terminated, truncated, active)
+        adv_ok = torch.isfinite(stats.adv).numpy()
+        for k in busy:
+            if k in errors:
+                reports[k] = Progress([], error=errors[k])
+                continue
+            s = self._slot(k)
+            if not adv_ok[k]:
+                msg = f"non-finite loss (advantage) at episode {s.episodes}, step {s.length}"
+                reports[k] = Progress([], error=msg)
+                continue
+            s.steps.append(stats.member(k))
+            s.action = next_actions[k]
+            done = bool(terminated[k] or truncated[k])
+            cut = s.cfg.steps is not None and s.total_steps + s.length >= s.cfg.steps
+            if not (done or cut):
+                continue
+            s.total_steps += s.length
+            s.episodes += 1
+            diag = episode_diagnostics(StepStats.stack(s.steps), s.cfg.learner)
+            ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, **diag)
+            reports[k] = Progress(
+                [ep],
+                checkpoint_due=s.episodes % s.cfg.checkpoint_every == 0,
+                bar_advance=1 if s.cfg.episodes is not None else s.length,
+                total_steps=s.total_steps,
+            )
+            s.action, s.steps, s.ret, s.length = None, [], 0.0, 0
+        return reports
+
+    # -- reading a run ---------------------------------------------------------------
+    def finished(self, slot: int) -> bool:
+        """Whether the run's budget (episodes or steps) is spent."""
+        return self._slot(slot).finished()
+
+    def counters(self, slot: int) -> dict[str, int]:
+        """Episodes (the unit of work) and environment steps done."""
+        s = self._slot(slot)
+        return {"total_steps": s.total_steps, "chunks": s.episodes}
+
+    def bar_position(self, slot: int) -> int:
+        """Episodes (or steps) done."""
+        s = self._slot(slot)
+        return s.episodes if s.cfg.episodes is not None else s.total_steps
+
+    def state(self, slot: int) -> dict[str, Any]:
+        """The run's member, environment replay record, counters and episode in progress."""
+        s = self._slot(slot)
+        fields = ("delta", "adv", "ratio", "divergence", "trace_decay")
+        return {
+            "learner": self.learner.member_state(slot),
+            "episodes": s.episodes,
+            "total_steps": s.total_steps,
+            "env": s.env.replay_record() if s.action is not None else None,
+            "env_rng": s.env.unwrapped.np_random.bit_generator.state,
+            "action": None if s.action is None else np.array(s.action),
+            "episode": {
+                "ret": s.ret,
+                "length": s.length,
+                "steps": [[getattr(st, f) for st in s.steps] for f in fields],
+            },
+        }
+
+    def parameters_finite(self, slot: int) -> bool:
+        """Whether the run's parameters (online and target) are finite."""
+        return bool(self.learner.finite()[slot])
+
+    def policy(self, slot: int) -> Callable[[Any], np.ndarray]:
+        """A standalone copy of the run's deterministic policy."""
+        s = self._slot(slot)
+        single = _single_learner(s.cfg)
+        single.population.load_member_state(0, s.cfg.learner, self.learner.member_state(slot))
+        return single.act_deterministic
+
+
+def _single_learner(cfg: TrainConfig) -> OnlineLearner:
+    spec = _spaces(cfg.env)
+    learner_cfg = OnlineConfig(**{**cfg.learner.__dict__, "compile": False})
+    return OnlineLearner(
+        spec["obs_dim"], spec["action_low"], spec["action_high"], learner_cfg, cfg.seed
+    )
 
 
 class OnlineKind:
-    """Learner kind ``"online"``: the paper's Alg. 1, configured by :class:`TrainConfig`."""
+    """Learner kind ``"online"``: the paper's Algorithm 1, configured by :class:`TrainConfig`."""
 
     name = "online"
     config_type = TrainConfig
 
-    def make_trainer(self, cfg: TrainConfig) -> OnlineTrainer:
-        """A fresh run (torch is already seeded by the loop)."""
-        return OnlineTrainer(cfg)
+    def make_trainer(self, cfg: TrainConfig, capacity: int) -> OnlineTrainer:
+        """A population of ``capacity`` slots for runs shaped like ``cfg``."""
+        return OnlineTrainer(cfg, capacity)
+
+    def budget(self, cfg: TrainConfig) -> tuple[int, str]:
+        """Episodes, or steps when the run is measured in steps."""
+        if cfg.episodes is not None:
+            return cfg.episodes, "ep"
+        return int(cfg.steps or 0), "step"
+
+    def pack_key(self, cfg: TrainConfig) -> Any:
+        """The task and the network shape: what members of one population share."""
+        lc = cfg.learner
+        return (cfg.env, lc.layers, lc.units, lc.layer_norm, lc.activation, lc.policy, lc.compile)
 
     def load_policy(self, cfg: TrainConfig, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
-        """The deterministic policy of a checkpoint."""
-        env = make_env(cfg.env)
-        try:
-            learner = build_learner(env, cfg.learner)
-        finally:
-            env.close()
-        learner.load_state_dict(state["learner"])
+        """The deterministic policy of a checkpoint (also of pporpe 0.1.0's)."""
+        learner = _single_learner(cfg)
+        member = state["learner"]
+        if "params" in member:
+            learner.population.load_member_state(0, learner.config, member)
+        else:  # 0.1.0: a flat theta in the same order as member_theta
+            learner.population.set_member_theta(0, member["theta"])
         return learner.act_deterministic
 
     def grid_config(

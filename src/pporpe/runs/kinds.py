@@ -60,63 +60,77 @@ class Episode:
 
 @dataclass(frozen=True)
 class Progress:
-    """What one :meth:`Trainer.advance` did."""
+    """What one :meth:`Trainer.advance` did for one run."""
 
     episodes: list[Episode]
-    """Episodes that ended (possibly none)."""
-    checkpoint_due: bool
-    """Whether the trainer's checkpoint cadence asks for a checkpoint now."""
-    bar_advance: int
-    """How far the progress bar moves (in the unit of :attr:`Trainer.bar_unit`)."""
+    """Episodes of the run that ended (possibly none)."""
+    checkpoint_due: bool = False
+    """Whether the run's checkpoint cadence asks for a checkpoint now."""
+    bar_advance: int = 0
+    """How far the run's progress bar moves (in the unit of :meth:`LearnerKind.budget`)."""
     scalars: Mapping[str, float] = field(default_factory=dict)
     """Extra scalars to log (e.g. a batch update's statistics), at :attr:`total_steps`."""
     total_steps: int = 0
     """Environment steps of the run after this advance."""
+    error: str | None = None
+    """Set when the run failed (e.g. a non-finite value): the run stops alone, with this
+    message in its folder's ``error.txt``; the trainer's other runs go on."""
 
 
 class Trainer(Protocol):
-    """One training run in progress: its environment(s) and its learner."""
+    """Runs in progress: up to :attr:`capacity` of them at once, in *slots*.
 
-    bar_total: int
-    """Length of the run in the progress bar's unit."""
-    bar_unit: str
-    """``"ep"`` or ``"step"``."""
+    A single-run learner has one slot; the online population learner trains K runs in
+    lockstep. The run loop (:mod:`pporpe.runs.loop`) starts runs in free slots, advances
+    all of them together, checkpoints, evaluates and stops them.
+    """
 
-    def advance(self) -> Progress:
-        """Do one unit of work (an episode, an update) and report it."""
+    capacity: int
+    """Number of slots."""
+
+    def start(self, slot: int, cfg: Any, state: dict[str, Any] | None) -> None:
+        """Begin a run in a free slot: fresh (seeded from ``cfg.seed``) when ``state`` is
+        None, else continued from its checkpoint :meth:`state`."""
         ...
 
-    def finished(self) -> bool:
+    def advance(self) -> dict[int, Progress]:
+        """Do one unit of work (an environment step of every run, an update) and report
+        what happened to each busy slot."""
+        ...
+
+    def finished(self, slot: int) -> bool:
         """Whether the run's budget is spent."""
         ...
 
-    def bar_position(self) -> int:
-        """Where the progress bar stands."""
-        ...
-
-    def counters(self) -> dict[str, int]:
+    def counters(self, slot: int) -> dict[str, int]:
         """Counters saved in ``done.json``: at least ``total_steps`` and ``chunks`` (units
         of work done: episodes or updates)."""
         ...
 
-    def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue exactly (the loop adds records and wall time)."""
+    def bar_position(self, slot: int) -> int:
+        """Where the run's progress bar stands."""
         ...
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`."""
+    def state(self, slot: int) -> dict[str, Any]:
+        """Everything needed to continue the run exactly (the loop adds records and wall
+        time); written as the run's ``checkpoint.pt``."""
         ...
 
-    def parameters_finite(self) -> bool:
-        """Whether every parameter is finite (checked before each checkpoint)."""
+    def parameters_finite(self, slot: int) -> bool:
+        """Whether every parameter of the run is finite (checked before each checkpoint)."""
         ...
 
-    def act_deterministic(self, obs: Any) -> np.ndarray:
-        """Test-time action for one raw observation."""
+    def policy(self, slot: int) -> Callable[[Any], np.ndarray]:
+        """The run's deterministic test-time policy ``act(obs) -> action`` (independent of
+        the slot: it stays valid after :meth:`stop`)."""
+        ...
+
+    def stop(self, slot: int) -> None:
+        """Free the slot."""
         ...
 
     def close(self) -> None:
-        """Release the environment(s)."""
+        """Release every environment."""
         ...
 
 
@@ -133,8 +147,17 @@ class LearnerKind(Protocol):
         """The run configuration dataclass (with ``env``, ``seed``, ``eval_episodes``)."""
         ...
 
-    def make_trainer(self, cfg: Any) -> Trainer:
-        """Build the environment(s) and learner of a fresh run (the loop seeds torch first)."""
+    def make_trainer(self, cfg: Any, capacity: int) -> Trainer:
+        """A trainer with up to ``capacity`` slots for runs shaped like ``cfg`` (the same
+        task and network; kinds with one slot ignore ``capacity``)."""
+        ...
+
+    def budget(self, cfg: Any) -> tuple[int, str]:
+        """A run's length for progress bars: ``(total, unit)``, unit ``"ep"`` or ``"step"``."""
+        ...
+
+    def pack_key(self, cfg: Any) -> Any:
+        """Runs with equal keys can share a trainer (same task and network shape)."""
         ...
 
     def load_policy(self, cfg: Any, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:

@@ -1,27 +1,32 @@
 """The one run loop: every learner kind trains, checkpoints, resumes and evaluates here.
 
-:func:`train` takes a run configuration of any registered learner kind
-(:mod:`pporpe.runs.kinds`) and a folder (:mod:`pporpe.runs.folder`), and
+:func:`run_queue` trains a queue of runs of one learner kind through one trainer with up
+to K slots (K = 1 for a single run; the online learner trains K runs in lockstep), and
+:func:`train` is the single-run case. For every run it
 
 1. checks the task name and writes ``config.json`` before any work (or checks that the
-   folder holds the same run; a complete run returns at once);
-2. runs torch on one thread, seeds it with the run's seed and builds the trainer;
-3. resumes from ``checkpoint.pt`` when there is one;
-4. advances the trainer (an episode, an update) until its budget is spent, logging every
-   episode through the one sink (:class:`~pporpe.runs.logger.RunLogger`), with a progress
-   bar, and checkpointing at the trainer's cadence after a finiteness check;
-5. evaluates the deterministic policy on test episodes and writes ``evaluation.json``;
-6. writes ``done.json`` last.
+   folder holds the same run; a complete run is skipped);
+2. starts the run in a free slot, fresh or from its ``checkpoint.pt``;
+3. advances all slots together, logging every episode through the one sink
+   (:class:`~pporpe.runs.logger.RunLogger`) and checkpointing at the trainer's cadence
+   after a finiteness check;
+4. when its budget is spent: a last checkpoint, test episodes of the deterministic policy
+   (``evaluation.json``), then ``done.json``; the slot takes the next run of the queue.
 
-A killed run loses at most the work since its last checkpoint, the records never have a
-gap or a duplicate, and a resumed run produces the same numbers as an uninterrupted one.
+A run that fails alone (a non-finite value) leaves its message in ``error.txt`` and the
+others go on. With several slots, the loop also keeps ``population.json`` in a home
+folder: which run is in which slot and what is still queued, so that a restarted queue
+resumes with the same packing and produces the same numbers as an uninterrupted one.
+A killed run loses at most the work since its last checkpoint; records never have a
+gap or a duplicate.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,18 +35,20 @@ import torch
 
 from ..envs import resolve_env_id
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
-from ..io import atomic_write_json
+from ..io import atomic_write_json, atomic_write_text
 from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read_config
 from .folder import save_checkpoint as save_checkpoint
-from .kinds import NonFiniteError, Progress, Trainer, kind_of
+from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
 from .logger import EpisodeRecord, RunLogger, read_records
 
-__all__ = ["NonFiniteError", "RunResult", "load_policy", "train"]
+__all__ = ["NonFiniteError", "RunResult", "load_policy", "run_queue", "train"]
+
+POPULATION_FILE = "population.json"
 
 
 @dataclass
 class RunResult:
-    """What :func:`train` produced."""
+    """What the loop produced for one run."""
 
     run_dir: Path
     """The run folder."""
@@ -61,11 +68,13 @@ class RunResult:
     """Units of work done in all."""
     last_scalars: dict[str, float] = field(default_factory=dict)
     """The last extra scalars the trainer reported (a batch update's statistics)."""
+    error: str | None = None
+    """Why the run failed alone (also in its ``error.txt``), or None."""
 
 
 OnChunk = Callable[[Trainer, Progress, float], None]
-"""Called after each unit of work with the trainer, its report and the training seconds so
-far; its own time is not counted as training time."""
+"""Called after each unit of work of a run with the trainer, the run's report and its
+training seconds so far; its own time is not counted as training time."""
 
 
 def _finished_result(run: Path) -> RunResult:
@@ -83,6 +92,256 @@ def _finished_result(run: Path) -> RunResult:
     )
 
 
+class _Run:
+    """One run in a slot: its folder, records, log sink, clock and progress bar."""
+
+    def __init__(self, kind: LearnerKind, cfg: Any, run: Path, bar: bool) -> None:
+        self.kind, self.cfg, self.run = kind, cfg, run
+        self.records: list[EpisodeRecord] = []
+        self.wall_offset = 0.0
+        self.excluded = 0.0
+        self.last: dict[str, float] = {}
+        self.resumed_from = 0
+        self.logger = RunLogger(run)
+        self.t_start = time.perf_counter()
+        self.bar: Any = None
+        self._want_bar = bar
+
+    def resume(self, state: dict[str, Any] | None, trainer: Trainer, slot: int) -> None:
+        if state is not None:
+            self.records = [EpisodeRecord(**r) for r in state["records"]]
+            self.wall_offset = float(state["wall_time"])
+        self.resumed_from = trainer.counters(slot)["chunks"]
+        self.t_start = time.perf_counter()
+        if self._want_bar:
+            from tqdm import tqdm
+
+            total, unit = self.kind.budget(self.cfg)
+            self.bar = tqdm(
+                total=total,
+                initial=trainer.bar_position(slot),
+                desc=self.kind.description(self.cfg),
+                unit=unit,
+                dynamic_ncols=True,
+            )
+
+    def train_time(self) -> float:
+        return self.wall_offset + (time.perf_counter() - self.t_start) - self.excluded
+
+    def add(self, report: Progress) -> list[EpisodeRecord]:
+        now = self.train_time()
+        new = []
+        for ep in report.episodes:
+            rec = EpisodeRecord(episode=len(self.records), **ep.__dict__, wall_time=now)
+            self.records.append(rec)
+            self.logger.episode(rec)
+            new.append(rec)
+        if report.scalars:
+            self.last = dict(report.scalars)
+            self.logger.scalars("update", self.last, report.total_steps)
+        if self.bar is not None:
+            self.bar.update(report.bar_advance)
+            if self.records:
+                self.bar.set_postfix(ep=len(self.records) - 1, ret=f"{self.records[-1].ret:.1f}")
+        return new
+
+    def checkpoint(self, trainer: Trainer, slot: int) -> None:
+        if not trainer.parameters_finite(slot):
+            steps = trainer.counters(slot)["total_steps"]
+            raise NonFiniteError(
+                f"non-finite parameter at episode {len(self.records)}, step {steps}; "
+                "the last good checkpoint is kept"
+            )
+        state = trainer.state(slot)
+        state["records"] = [r.__dict__ for r in self.records]
+        state["wall_time"] = self.train_time()
+        save_checkpoint(self.run / CHECKPOINT, state)
+        self.logger.write_records(self.records)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        self.logger.close()
+
+
+def run_queue(
+    runs: Sequence[tuple[Any, str | Path]],
+    capacity: int = 1,
+    home: str | Path | None = None,
+    progress: bool = False,
+    on_episode: Callable[[EpisodeRecord], None] | None = None,
+    on_chunk: OnChunk | None = None,
+    checkpoint_seconds: float = 0.0,
+) -> list[RunResult]:
+    """Train every ``(config, run_dir)`` of ``runs`` (one learner kind, one task and network
+    shape) through one trainer with up to ``capacity`` slots, refilling a slot when its run
+    finishes. Returns one result per run, in order.
+
+    ``home`` (required when ``capacity`` > 1) holds ``population.json``. A due checkpoint
+    is written at most every ``checkpoint_seconds`` (0: whenever due); every run also gets
+    one when it finishes. ``on_episode`` is called after every episode, ``on_chunk`` after
+    every unit of work of a run. Exceptions other than a run's own failure stop the queue
+    (each run keeps its last checkpoint).
+    """
+    if not runs:
+        return []
+    cfgs = [cfg for cfg, _ in runs]
+    kind = kind_of(cfgs[0])
+    keys = {kind.pack_key(c) for c in cfgs}
+    if any(kind_of(c) is not kind for c in cfgs) or len(keys) != 1:
+        raise ValueError("run_queue takes runs of one learner kind, task and network shape")
+    for cfg in cfgs:
+        resolve_env_id(cfg.env)  # bad env names fail before anything is built or written
+    dirs = [Path(d) for _, d in runs]
+    results: dict[int, RunResult] = {}
+    pending: list[int] = []
+    for i, (cfg, run) in enumerate(zip(cfgs, dirs, strict=True)):
+        _, done = open_run_dir(run, config_json(kind, cfg))
+        if done:
+            results[i] = _finished_result(run)
+        else:
+            pending.append(i)
+    if not pending:
+        return [results[i] for i in range(len(runs))]
+    capacity = max(1, min(capacity, len(pending)))
+    pop_file = Path(home) / POPULATION_FILE if home is not None and capacity > 1 else None
+    if capacity > 1 and pop_file is None:
+        raise ValueError("run_queue needs a home folder for population.json when capacity > 1")
+
+    torch.set_num_threads(1)
+    queue: deque[int] = deque(pending)
+    slots: list[int | None] = [None] * capacity
+    if pop_file is not None and pop_file.is_file():
+        saved = json.loads(pop_file.read_text())
+        if saved.get("runs") == [str(d) for d in dirs]:  # the same job: the same packing
+            by_dir = {str(d): i for i, d in enumerate(dirs)}
+            slots = [by_dir.get(d) if d else None for d in saved["slots"]][:capacity]
+            slots += [None] * (capacity - len(slots))
+            queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
+            slots = [i if i in pending else None for i in slots]
+    trainer = kind.make_trainer(cfgs[pending[0]], capacity)
+    books: dict[int, _Run] = {}
+
+    def write_population() -> None:
+        if pop_file is not None:
+            atomic_write_json(
+                pop_file,
+                {
+                    "runs": [str(d) for d in dirs],
+                    "slots": [str(dirs[i]) if i is not None else None for i in slots],
+                    "queue": [str(dirs[i]) for i in queue],
+                },
+            )
+
+    def begin(slot: int, i: int) -> None:
+        run = dirs[i]
+        state = load_checkpoint(run) if (run / CHECKPOINT).exists() else None
+        book = _Run(kind, cfgs[i], run, bar=progress and capacity == 1)
+        trainer.start(slot, cfgs[i], state)
+        book.resume(state, trainer, slot)
+        (run / "error.txt").unlink(missing_ok=True)
+        books[slot] = book
+        slots[slot] = i
+
+    def fill(slot: int) -> None:
+        slots[slot] = None
+        if queue:
+            begin(slot, queue.popleft())
+
+    def fail(slot: int, message: str) -> None:
+        i, book = slots[slot], books.pop(slot)
+        assert i is not None
+        atomic_write_text(book.run / "error.txt", message + "\n")
+        book.close()
+        results[i] = RunResult(
+            book.run, book.records, None, book.resumed_from, error=message, chunks=0
+        )
+        trainer.stop(slot)
+        fill(slot)
+
+    def finish(slot: int) -> None:
+        """Evaluate and complete the run in ``slot`` (its last checkpoint is written)."""
+        try:
+            books[slot].checkpoint(trainer, slot)
+        except NonFiniteError as exc:
+            fail(slot, str(exc))
+            return
+        i, book = slots[slot], books.pop(slot)
+        assert i is not None
+        cfg = cfgs[i]
+        total_time = book.train_time()
+        counters = trainer.counters(slot)
+        act = trainer.policy(slot)
+        trainer.stop(slot)
+        book.close()
+        evaluation = None
+        if cfg.eval_episodes > 0:
+            evaluation = evaluate_policy(
+                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
+            )
+            atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
+        done = {"episodes": len(book.records), **counters, "train_time": total_time}
+        atomic_write_json(book.run / "done.json", done)
+        results[i] = RunResult(
+            book.run,
+            book.records,
+            evaluation,
+            book.resumed_from,
+            counters["total_steps"],
+            total_time,
+            counters["chunks"],
+            book.last,
+        )
+        fill(slot)
+
+    last_checkpoint = time.perf_counter()
+    try:
+        for slot in range(capacity):
+            assigned = slots[slot]
+            if assigned is not None:
+                begin(slot, assigned)
+            else:
+                fill(slot)
+        write_population()
+        while books:
+            reports = trainer.advance()
+            due = False
+            for slot, report in reports.items():
+                book = books[slot]
+                new = book.add(report)
+                t_cb = time.perf_counter()
+                if on_episode is not None:
+                    for rec in new:
+                        on_episode(rec)
+                if on_chunk is not None:
+                    on_chunk(trainer, report, book.train_time())
+                book.excluded += time.perf_counter() - t_cb
+                due = due or report.checkpoint_due
+            changed = False
+            for slot, report in reports.items():
+                if report.error is not None:
+                    fail(slot, report.error)
+                    changed = True
+                elif trainer.finished(slot):
+                    finish(slot)
+                    changed = True
+            if due and time.perf_counter() - last_checkpoint >= checkpoint_seconds:
+                for slot, book in list(books.items()):
+                    try:
+                        book.checkpoint(trainer, slot)
+                    except NonFiniteError as exc:
+                        fail(slot, str(exc))
+                last_checkpoint = time.perf_counter()
+                changed = True
+            if changed:
+                write_population()
+    finally:
+        for book in books.values():
+            book.close()
+        trainer.close()
+    return [results[i] for i in range(len(runs))]
+
+
 def train(
     cfg: Any,
     run_dir: str | Path,
@@ -90,126 +349,18 @@ def train(
     on_episode: Callable[[EpisodeRecord], None] | None = None,
     on_chunk: OnChunk | None = None,
 ) -> RunResult:
-    """Train a run of any learner kind as configured, writing everything into ``run_dir``.
+    """Train one run of any learner kind as configured, writing everything into
+    ``run_dir``; resumes from its checkpoint when one exists for the same config.
 
-    Resumes from ``run_dir``'s checkpoint when one exists for the same config.
-    ``on_episode`` is called after every episode (for example by a grid's progress bar),
-    ``on_chunk`` after every unit of work (an episode or an update).
+    Raises :class:`NonFiniteError` if the run failed on a non-finite value (its last good
+    checkpoint is kept).
     """
-    kind = kind_of(cfg)
-    resolve_env_id(cfg.env)  # bad env names fail before anything is built or written
-    run, done = open_run_dir(run_dir, config_json(kind, cfg))
-    if done:
-        return _finished_result(run)
-
-    torch.set_num_threads(1)
-    torch.manual_seed(cfg.seed)
-    trainer = kind.make_trainer(cfg)
-    records: list[EpisodeRecord] = []
-    wall_offset = 0.0
-    ckpt_path = run / CHECKPOINT
-    try:
-        if ckpt_path.exists():
-            state = load_checkpoint(run)
-            trainer.load_state_dict(state)
-            records = [EpisodeRecord(**r) for r in state["records"]]
-            wall_offset = float(state["wall_time"])
-    except BaseException:
-        trainer.close()
-        raise
-    resumed_from = trainer.counters()["chunks"]
-
-    logger = RunLogger(run)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=trainer.bar_total,
-            initial=trainer.bar_position(),
-            desc=kind.description(cfg),
-            unit=trainer.bar_unit,
-            dynamic_ncols=True,
-        )
-    excluded = 0.0
-    t_start = time.perf_counter()
-
-    def train_time() -> float:
-        return wall_offset + (time.perf_counter() - t_start) - excluded
-
-    def checkpoint() -> None:
-        if not trainer.parameters_finite():
-            steps = trainer.counters()["total_steps"]
-            raise NonFiniteError(
-                f"non-finite parameter at episode {len(records)}, step {steps}; "
-                "the last good checkpoint is kept"
-            )
-        state = trainer.state_dict()
-        state["records"] = [r.__dict__ for r in records]
-        state["wall_time"] = train_time()
-        save_checkpoint(ckpt_path, state)
-        logger.write_records(records)
-
-    last: dict[str, float] = {}
-    try:
-        while not trainer.finished():
-            report = trainer.advance()
-            now = train_time()
-            for ep in report.episodes:
-                rec = EpisodeRecord(episode=len(records), **ep.__dict__, wall_time=now)
-                records.append(rec)
-                logger.episode(rec)
-            if report.scalars:
-                last = dict(report.scalars)
-                logger.scalars("update", last, report.total_steps)
-            t_cb = time.perf_counter()
-            if on_episode is not None:
-                for rec in records[len(records) - len(report.episodes) :]:
-                    on_episode(rec)
-            if on_chunk is not None:
-                on_chunk(trainer, report, now)
-            excluded += time.perf_counter() - t_cb
-            if bar is not None:
-                bar.update(report.bar_advance)
-                if records:
-                    bar.set_postfix(ep=len(records) - 1, ret=f"{records[-1].ret:.1f}")
-            if trainer.finished():
-                break
-            if report.checkpoint_due:
-                checkpoint()
-        checkpoint()
-    except BaseException:
-        trainer.close()
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
-        logger.close()
-    total_time = train_time()
-
-    evaluation = None
-    try:
-        if cfg.eval_episodes > 0:
-            evaluation = evaluate_policy(
-                trainer.act_deterministic, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
-            )
-            atomic_write_json(run / "evaluation.json", evaluation.to_dict())
-    finally:
-        trainer.close()
-    counters = trainer.counters()
-    atomic_write_json(
-        run / "done.json", {"episodes": len(records), **counters, "train_time": total_time}
+    (result,) = run_queue(
+        [(cfg, run_dir)], progress=progress, on_episode=on_episode, on_chunk=on_chunk
     )
-    return RunResult(
-        run,
-        records,
-        evaluation,
-        resumed_from,
-        counters["total_steps"],
-        total_time,
-        counters["chunks"],
-        last,
-    )
+    if result.error is not None:
+        raise NonFiniteError(result.error)
+    return result
 
 
 def load_policy(run_dir: str | Path) -> tuple[Any, Callable[[Any], Any]]:

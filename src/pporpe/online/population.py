@@ -1,0 +1,536 @@
+r"""A population of K online actor-critic learners stepped together.
+
+Every member runs the paper's online learner (Algorithm 1 of arXiv:2010.03290, with the
+components of its Sec. IV-A; docs/online-learner.md) for its own config and seed. K = 1 is
+a single run (:class:`pporpe.online.OnlineLearner` is that case with scalar inputs).
+
+The step order makes the ratio measure exactly one update (as in the author's test bed):
+a_{t+1} is sampled with theta_t before the update of transition t, so the ratio of
+transition t+1 is pi_theta_{t+1}(u_{t+1}|s_{t+1}) / pi_theta_t(u_{t+1}|s_{t+1}).
+
+One step, for every active member at once:
+
+1. one forward pass over ``[s_t; s_{t+1}]`` of all 3K networks (policy, value, target)
+   stacked in ``P [3, K, n_pad]`` (:mod:`pporpe.nn.batched`);
+2. with ``rho = exp(log pi(u_t|s_t) - log pi_b)``, ``sigma = sign(A)``::
+
+       delta = r * reward_scale + gamma [not terminated] V_target(s_{t+1}) - V(s_t)
+       A     = delta - (1 - gamma)(beta_TD delta^2 + beta_DE log pi_a(a_t|s_t))
+       d     = (rho - 1 - log rho) + (V(s_t) - V_b(s_t))^2
+
+   where ``log pi_a`` is the density of the bounded action (Jacobian of the map
+   included). The per-unit-signal gradient ``g = grad[-sigma obj(rho, sigma)]`` (policy)
+   ``+ grad[-V(s_t)]`` (value) is the hand-written backward of row s_t, fed with
+   ``d(-sigma obj)/d raw`` from autograd on the tiny head (surrogates of
+   :mod:`pporpe.surrogates`, grouped by unique surrogate settings);
+3. ``u_{t+1}`` is sampled from the row s_{t+1} with theta_t (before the update), from
+   the member's own noise stream (:mod:`pporpe.online.noise`);
+4. traces, td-AmsProp and the t-soft target update (:mod:`pporpe.online.update`).
+
+A member's numbers depend only on (config, seed, its data): every operation is batched
+per member; packing (K, slot) changes results only by float rounding.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..advantages import regularized_advantage, td_error
+from ..nn.batched import NetLayout, backward_row0, forward_chain
+from ..nn.mlp import mlp
+from ..nn.policies import ActionMap, PolicyHead, StudentTHead, make_head
+from ..surrogates import surrogate_objective
+from .config import OnlineConfig
+from .member_state import load_member_state, member_state
+from .noise import NoiseBank, polar_normal, polar_student_t
+from .update import (
+    opt_scalars,
+    trace_scalars,
+    tsoft_rates,
+    update_chunk,
+    update_target,
+)
+
+__all__ = ["SHARED_FIELDS", "PopulationLearner", "StepStats"]
+
+SHARED_FIELDS: tuple[str, ...] = ("layers", "units", "layer_norm", "activation", "policy")
+"""Config fields every member must share (they fix the network shape)."""
+
+SIGMA2_INIT = 1e-2
+SIGMA2_MIN = 1e-12
+"""t-soft ``sigma2`` initial value and floor: TSoftUpdate's defaults, as OnlineLearner uses."""
+
+
+@dataclass(frozen=True)
+class StepStats:
+    """What one step did: ``[K]`` tensors, one entry per member (0-dim for one member).
+
+    No ``.item()`` in the step path; read by name.
+    """
+
+    delta: Tensor
+    """TD error delta (scaled-reward units)."""
+    adv: Tensor
+    """Regularised advantage A used by the surrogate."""
+    ratio: Tensor
+    """Density ratio rho = pi_theta_t / pi_theta_{t-1} of the transition."""
+    divergence: Tensor
+    """KL estimate + squared value change since the last step."""
+    trace_decay: Tensor
+    """Adaptive trace decay exp(-kappa D) after this step."""
+
+    def member(self, k: int) -> StepStats:
+        """Member k's entries (0-dim tensors)."""
+        return StepStats(*(getattr(self, f.name)[k] for f in fields(self)))
+
+    def as_dict(self) -> dict[str, float]:
+        """Python floats by name, for 0-dim stats (synchronises; logging and tests only)."""
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+    @staticmethod
+    def stack(steps: list[StepStats]) -> StepStats:
+        """The stats of many steps, each field stacked along a new first dimension."""
+        return StepStats(
+            *(torch.stack([getattr(s, f.name) for s in steps]) for f in fields(StepStats))
+        )
+
+
+def _as_index(members: Sequence[int] | Tensor | np.ndarray, k: int) -> np.ndarray:
+    idx = np.asarray(members.tolist() if isinstance(members, Tensor) else members, np.int64)
+    idx = idx.reshape(-1)
+    if idx.size and (idx.min() < 0 or idx.max() >= k or len(set(idx.tolist())) != idx.size):
+        raise ValueError(f"members must be distinct indices in [0, {k}); got {idx.tolist()}")
+    return idx
+
+
+class PopulationLearner:
+    """K online learners with stacked parameters (see the module docstring).
+
+    Args:
+        obs_dim: observation size.
+        action_low, action_high: bounds of the (shared) action box.
+        configs: one :class:`OnlineConfig` per member; they must agree on
+            :data:`SHARED_FIELDS` (``compile`` is ignored).
+        seeds: one seed per member: its initial parameters equal OnlineLearner's after
+            ``torch.manual_seed(seed)``; its sampling stream is a generator seeded with it.
+        compile_update: compile the elementwise update with ``torch.compile``.
+        noise_block: steps of noise drawn at once per member.
+        cache_bytes: working-set target of one block of the elementwise update.
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_low: Any,
+        action_high: Any,
+        configs: Sequence[OnlineConfig],
+        seeds: Sequence[int],
+        compile_update: bool = True,
+        noise_block: int = 1024,
+        cache_bytes: int = 4 * 2**20,
+    ) -> None:
+        if not (isinstance(obs_dim, int) and obs_dim >= 1):
+            raise ValueError(f"obs_dim must be an int >= 1; got obs_dim={obs_dim!r}")
+        configs, seeds = list(configs), list(seeds)
+        if not configs or len(configs) != len(seeds):
+            raise ValueError(
+                f"need as many seeds as configs (>= 1); got {len(configs)} and {len(seeds)}"
+            )
+        self.shape_config = configs[0]
+        for cfg in configs:
+            self._check_shape(cfg)
+        self.K = K = len(configs)
+        self.obs_dim = obs_dim
+        self.action_map = ActionMap(
+            torch.as_tensor(np.asarray(action_low), dtype=torch.float32),
+            torch.as_tensor(np.asarray(action_high), dtype=torch.float32),
+        )
+        self.act_dim = self.action_map.act_dim
+        c0 = configs[0]
+        self.head: PolicyHead = make_head(c0.policy, self.act_dim)
+        self.activation = c0.activation
+        self.lay = lay = NetLayout(obs_dim, self.head.raw_dim, c0.layers, c0.units, c0.layer_norm)
+        R, U, S = lay.n_rows, lay.units, lay.n_seg
+        self.P = torch.zeros(3, K, R, U)
+        """Parameters: policy, value and target networks of every member."""
+        self.G, self.e, self.r, self.v, self.vmax_s, self.m = (
+            torch.zeros(2, K, R, U) for _ in range(6)
+        )
+        self.W_opt = torch.zeros(2, K, S)
+        self.num = torch.ones(2, K, S)
+        self.den = torch.zeros(2, K, S)
+        self.D = torch.zeros(K)
+        self.decay = torch.ones(K)
+        self.ts_W = torch.zeros(K, dtype=torch.float64)
+        self.ts_sigma2 = torch.zeros(K, dtype=torch.float64)
+        self.steps = np.zeros(K, dtype=np.int64)
+        self.noise = NoiseBank(K, self.act_dim, noise_block)
+        # per-member constants
+        self._c = {
+            n: torch.zeros(K)
+            for n in [
+                "reward_scale",
+                "gamma",
+                "one_m_gamma",
+                "beta_td",
+                "beta_de",
+                "neg_kappa",
+                "gl1",
+                "gl2",
+                "beta2",
+                "one_m_beta2",
+                "opt_eps",
+                "omb_mom",
+                "w_coef",
+            ]
+        }
+        self._c64 = {n: torch.zeros(K, dtype=torch.float64) for n in ("tau", "nu", "sigma2_min")}
+        self._b = {n: torch.zeros(K, dtype=torch.bool) for n in ("kappa_pos", "mom_only", "polyak")}
+        self._np = {n: np.zeros(K) for n in ("beta1", "beta2", "lr", "ams_decay")}
+        self.configs: list[OnlineConfig] = list(configs)
+        self._groups: list[tuple[tuple[Any, ...], Tensor]] = []
+        # pending transition state
+        self._obs = torch.zeros(K, obs_dim)
+        self._u = torch.zeros(K, self.act_dim)
+        self._logp_b = torch.zeros(K)
+        self._value_b = torch.zeros(K)
+        self._pending = np.zeros(K, dtype=bool)
+        self._row_seg = lay.row_seg
+        self._upd: Callable[..., Tensor] = update_chunk
+        self._tgt: Callable[..., None] = update_target
+        if compile_update:
+            self._upd = torch.compile(update_chunk, dynamic=False)
+            self._tgt = torch.compile(update_target, dynamic=False)
+        # members are updated in blocks whose state (~10 parameter-sized vectors) fits in
+        # about `cache_bytes` of cache; every block but the last has the same shape
+        per_member = 10 * 2 * lay.n_pad * 4
+        size = max(1, min(K, cache_bytes // per_member))
+        self._blocks = [(a, min(a + size, K)) for a in range(0, K, size)]
+        self._block_state = [
+            tuple(
+                buf[:, a:b]
+                for buf in (self.P, self.G, self.e, self.r, self.v, self.vmax_s, self.m, self.W_opt)
+            )
+            for a, b in self._blocks
+        ]
+        self._block_consts = [(self.num[:, a:b], self.den[:, a:b]) for a, b in self._blocks]
+        for k, (cfg, seed) in enumerate(zip(configs, seeds, strict=True)):
+            self.reset_member(k, cfg, seed)
+
+    # -- configuration -------------------------------------------------------------------
+    def _check_shape(self, cfg: OnlineConfig) -> None:
+        if not isinstance(cfg, OnlineConfig):
+            raise TypeError(f"configs must be OnlineConfig instances; got {cfg!r}")
+        for name in SHARED_FIELDS:
+            a, b = getattr(cfg, name), getattr(self.shape_config, name)
+            if a != b:
+                raise ValueError(
+                    f"all members must share the network shape: field {name!r} differs "
+                    f"({a!r} vs {b!r})"
+                )
+
+    def _set_config(self, k: int, cfg: OnlineConfig) -> None:
+        """Write member k's constants (everything but its state)."""
+        self._check_shape(cfg)
+        self.configs[k] = cfg
+        c, c64, b, nps = self._c, self._c64, self._b, self._np
+        beta1, beta2 = cfg.opt_betas
+        c["reward_scale"][k] = cfg.effective_reward_scale
+        c["gamma"][k] = cfg.gamma
+        c["one_m_gamma"][k] = 1.0 - cfg.gamma
+        c["beta_td"][k] = cfg.beta_td
+        c["beta_de"][k] = cfg.beta_de
+        c["neg_kappa"][k] = -cfg.kappa
+        b["kappa_pos"][k] = cfg.kappa > 0.0
+        c["gl1"][k] = cfg.gamma * cfg.lambdas[0]
+        c["gl2"][k] = cfg.gamma * cfg.lambdas[1]
+        c["beta2"][k] = beta2
+        c["one_m_beta2"][k] = 1.0 - beta2
+        c["opt_eps"][k] = cfg.opt_eps
+        mom_only = beta1 == 0.0 or math.isinf(cfg.k_dof)
+        b["mom_only"][k] = mom_only
+        c["omb_mom"][k] = 1.0 - beta1
+        c["w_coef"][k] = 0.0 if mom_only else 1.0 - 1.0 / beta1
+        for j in range(2):
+            n = torch.tensor([float(s.real[j]) for s in self.lay.slots])
+            if mom_only:
+                self.num[j, k], self.den[j, k] = 1.0, 0.0
+            else:
+                self.num[j, k] = n * (1.0 + cfg.k_dof)
+                self.den[j, k] = n * cfg.k_dof
+        nps["beta1"][k], nps["beta2"][k] = beta1, beta2
+        nps["lr"][k], nps["ams_decay"][k] = cfg.lr, cfg.amsgrad_decay
+        c64["tau"][k] = cfg.tau
+        c64["nu"][k] = cfg.nu
+        c64["sigma2_min"][k] = SIGMA2_MIN
+        b["polyak"][k] = math.isinf(cfg.nu)
+        groups: dict[tuple[Any, ...], list[int]] = {}
+        for i, cf in enumerate(self.configs):
+            key = (cf.method, cf.eps, cf.beta, cf.eta, cf.rpe_form)
+            groups.setdefault(key, []).append(i)
+        self._groups = [(key, torch.tensor(ix)) for key, ix in groups.items()]
+
+    def reset_member(self, k: int, config: OnlineConfig, seed: int) -> None:
+        """(Re)initialise slot k as a fresh run of ``config`` and ``seed``.
+
+        Parameters as OnlineLearner builds them after ``torch.manual_seed(seed)`` (the
+        global RNG is left untouched), zero optimiser state and traces, fresh t-soft
+        scalars, the noise stream restarted from ``seed``, no pending transition.
+        """
+        self._set_config(k, config)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            kw = {
+                "layers": config.layers,
+                "units": config.units,
+                "layer_norm": config.layer_norm,
+                "activation": config.activation,
+            }
+            pol = mlp(self.obs_dim, self.head.raw_dim, **kw)  # type: ignore[arg-type]
+            val = mlp(self.obs_dim, 1, **kw)  # type: ignore[arg-type]
+        R, U = self.lay.n_rows, self.lay.units
+        with torch.no_grad():
+            self.P[0, k] = self.lay.pack(list(pol.parameters()), 0).view(R, U)
+            self.P[1, k] = self.lay.pack(list(val.parameters()), 1).view(R, U)
+            self.P[2, k] = self.P[1, k]
+            for buf in (self.G, self.e, self.r, self.v, self.vmax_s, self.m):
+                buf[:, k] = 0.0
+            beta1 = config.opt_betas[0]
+            self.W_opt[:, k] = beta1 / (1.0 - beta1)
+            self.D[k], self.decay[k] = 0.0, 1.0
+            self.ts_W[k] = (1.0 - config.tau) / config.tau
+            self.ts_sigma2[k] = SIGMA2_INIT
+        self.steps[k] = 0
+        self.noise.reset(k, seed)
+        self._pending[k] = False
+
+    # -- parameters -------------------------------------------------------------------
+    def member_theta(self, k: int) -> Tensor:
+        """Member k's flat parameters in OnlineLearner.theta's layout (a new tensor)."""
+        flat = self.P[:2, k].reshape(2, -1)
+        pi, vi = self.lay.real_index
+        return torch.cat([flat[0, pi], flat[1, vi]])
+
+    @torch.no_grad()
+    def set_member_theta(self, k: int, theta: Tensor) -> None:
+        """Set member k's parameters (and its target to their value block) from a flat
+        vector in :meth:`member_theta`'s layout."""
+        pi, vi = self.lay.real_index
+        if theta.numel() != len(pi) + len(vi):
+            raise ValueError(f"theta must have {len(pi) + len(vi)} elements; got {theta.numel()}")
+        flat = self.P[:, k].reshape(3, -1)
+        flat[0, pi] = theta[: len(pi)]
+        flat[1, vi] = theta[len(pi) :]
+        flat[2, vi] = theta[len(pi) :]
+        self.P[:, k] = flat.view_as(self.P[:, k])
+
+    def member_target(self, k: int) -> Tensor:
+        """Member k's target value network in OnlineLearner.target's layout."""
+        return self.P[2, k].reshape(-1)[self.lay.real_index[1]]
+
+    def finite(self) -> Tensor:
+        """``[K]`` bool: all of the member's parameters and target are finite."""
+        return torch.isfinite(self.P).flatten(2).all(-1).all(0)
+
+    # -- acting ---------------------------------------------------------------------------
+    def _sample(self, raw: Tensor, pts: Tensor) -> Tensor:
+        """``u = loc + scale * T`` with T from the unit-disk points (head's distribution)."""
+        if isinstance(self.head, StudentTHead):
+            loc, scale, df = self.head.split(raw)
+            t = polar_student_t(pts, df.to(torch.float64))
+        else:
+            loc, scale = self.head.split(raw)
+            t = polar_normal(pts)
+        return loc + scale * t.to(loc.dtype)
+
+    def _flat(self, n_kinds: int) -> Tensor:
+        return self.P[:n_kinds].view(n_kinds * self.K, self.lay.n_pad)
+
+    @torch.no_grad()
+    def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
+        """Test-time actions ``[K, act_dim]``: each member's location mapped into the bounds."""
+        x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)
+        raw, _ = forward_chain(self._flat(1), x, self.lay, self.activation)
+        return self.action_map.to_action(self.head.location(raw[:, 0])).numpy()
+
+    @torch.no_grad()
+    def value(self, obs: np.ndarray) -> np.ndarray:
+        """V(s) of every member's online value network, ``[K]``."""
+        x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)
+        values = self.P[1].view(self.K, self.lay.n_pad)
+        out, _ = forward_chain(values, x, self.lay, self.activation)
+        return out[:, 0, 0].numpy()
+
+    @torch.no_grad()
+    def begin_episode(
+        self,
+        members: Sequence[int] | Tensor | np.ndarray,
+        obs: np.ndarray,
+        forced_u: Tensor | None = None,
+    ) -> np.ndarray:
+        """Reset these members' traces and sample their first actions ``[len, act_dim]``.
+
+        ``forced_u`` (test hook): pre-map actions ``[len, act_dim]`` used instead of
+        samples (no noise is consumed then).
+        """
+        idx = _as_index(members, self.K)
+        ti = torch.from_numpy(idx)
+        K = self.K
+        x = self._obs.clone()
+        x[ti] = torch.as_tensor(np.asarray(obs, np.float32)).reshape(len(idx), self.obs_dim)
+        xx = x.unsqueeze(1).repeat(2, 1, 1)
+        out, _ = forward_chain(self._flat(2), xx, self.lay, self.activation)
+        raw, value = out[:K, 0], out[K:, 0, 0]
+        if forced_u is None:
+            mask = np.zeros(K, dtype=bool)
+            mask[idx] = True
+            u = self._sample(raw, self.noise.take(mask))[ti]
+        else:
+            u = torch.as_tensor(forced_u, dtype=torch.float32).reshape(len(idx), self.act_dim)
+        for buf in (self.e, self.r):
+            buf[:, ti] = 0.0
+        self.D[ti], self.decay[ti] = 0.0, 1.0
+        self._obs[ti] = x[ti]
+        self._u[ti] = u
+        self._logp_b[ti] = self.head.log_prob(raw[ti], u)
+        self._value_b[ti] = value[ti]
+        self._pending[idx] = True
+        return self.action_map.to_action(u).numpy()
+
+    # -- learning -------------------------------------------------------------------------
+    def _head_grad(self, raw0: Tensor, ratio: Tensor, sigma: Tensor) -> Tensor:
+        """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)``, one surrogate call per group."""
+        loss = ratio.new_zeros(())
+        for (method, eps, beta, eta, form), ix in self._groups:
+            rho, sig = (ratio, sigma) if len(self._groups) == 1 else (ratio[ix], sigma[ix])
+            obj = surrogate_objective(method, rho, sig, eps, beta, eta, form)
+            loss = loss + (-sig * obj).sum()
+        (grad,) = torch.autograd.grad(loss, raw0)
+        return grad
+
+    def step(
+        self,
+        reward: np.ndarray,
+        next_obs: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        active: np.ndarray | None = None,
+        forced_u: Tensor | None = None,
+    ) -> tuple[StepStats, np.ndarray]:
+        """Learn transition t of every active member; return its stats and a_{t+1} ``[K, ·]``.
+
+        Inactive members' state stays bitwise unchanged (their rows of the inputs are
+        ignored; their returned actions are meaningless). Members that terminated or
+        truncated lose their pending state: call :meth:`begin_episode` for them next.
+        ``forced_u`` (test hook): pre-map next actions ``[K, act_dim]`` used instead of
+        samples (no noise consumed).
+        """
+        K, lay = self.K, self.lay
+        act_np = np.ones(K, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        if not self._pending[act_np].all():
+            missing = np.nonzero(act_np & ~self._pending)[0].tolist()
+            raise RuntimeError(f"call begin_episode for members {missing} before step()")
+        term_np = np.asarray(terminated, dtype=bool).reshape(K)
+        done_np = term_np | np.asarray(truncated, dtype=bool).reshape(K)
+        act = torch.from_numpy(act_np.copy())
+        c = self._c
+        rew = torch.as_tensor(np.asarray(reward, np.float32)).reshape(K)
+        nxt = torch.as_tensor(np.asarray(next_obs, np.float32)).reshape(K, self.obs_dim)
+        x = torch.stack([self._obs, nxt], 1)  # [K, 2, obs]: [s_t; s_{t+1}]
+        out, cache = forward_chain(self._flat(3), x.repeat(3, 1, 1), lay, self.activation, 2 * K)
+        assert cache is not None
+        raw, values, next_target = out[:K], out[K : 2 * K, :, 0], out[2 * K :, 1, 0]
+        v = values[:, 0]
+        bootstrap = torch.where(torch.from_numpy(term_np.copy()), 0.0, c["gamma"])
+        delta = td_error(rew * c["reward_scale"], next_target, v, bootstrap)
+        raw0 = raw[:, 0].detach().requires_grad_(True)
+        with torch.enable_grad():
+            logp = self.head.log_prob(raw0, self._u)
+            log_ratio_g = logp - self._logp_b
+            ratio_g = torch.exp(log_ratio_g)
+            # entropy term with the density of the bounded action a = f(u)
+            logp_action = logp.detach() - self.action_map.log_abs_det_jacobian(self._u)
+            adv = regularized_advantage(
+                delta, logp_action, c["one_m_gamma"], c["beta_td"], c["beta_de"]
+            )
+            sigma = torch.where(adv >= 0, 1.0, -1.0)
+            d_raw = self._head_grad(raw0, ratio_g, sigma)
+        log_ratio, ratio = log_ratio_g.detach(), ratio_g.detach()
+        divergence = (ratio - 1.0 - log_ratio) + (v - self._value_b) ** 2
+        dout = torch.zeros(2 * K, lay.raw_dim)
+        dout[:K] = d_raw
+        dout[K:, 0] = -1.0  # d(-V(s_t)) / dV
+        backward_row0(
+            self._flat(2), self.G.view(2 * K, lay.n_pad), dout, cache, lay, self.activation
+        )
+
+        # a_{t+1} from theta_t, before the update (the step order above)
+        raw1 = raw[:, 1]
+        if forced_u is None:
+            u_next = self._sample(raw1, self.noise.take(act_np))
+        else:
+            u_next = torch.as_tensor(forced_u, dtype=torch.float32).reshape(K, self.act_dim)
+        logp_b_next = self.head.log_prob(raw1, u_next)
+
+        c1, c2 = trace_scalars(
+            self.D, self.decay, divergence, c["neg_kappa"], self._b["kappa_pos"],
+            c["gl1"], c["gl2"], act,
+        )  # fmt: skip
+        self.steps += act_np.astype(np.int64)
+        scal = opt_scalars(self.steps, self._np)
+        signal = torch.stack([adv, delta])  # A on the policy block, delta on the value block
+        per_member = (
+            c1, c2, c["beta2"], c["one_m_beta2"], scal[0], scal[1], c["opt_eps"],
+            self._b["mom_only"], c["omb_mom"], c["w_coef"],
+        )  # fmt: skip
+        d2s = []
+        for (a, b), state, (num, den) in zip(
+            self._blocks, self._block_state, self._block_consts, strict=True
+        ):
+            pm = [x[a:b] for x in per_member]
+            d2s.append(
+                self._upd(
+                    *state,
+                    signal[:, a:b],
+                    *pm,
+                    num,
+                    den,
+                    scal[2][a:b],
+                    act[a:b],
+                    self._row_seg,
+                )
+            )
+        d2 = d2s[0] if len(d2s) == 1 else torch.cat(d2s)
+        rate = tsoft_rates(
+            d2, float(lay.n_real[1]), self.ts_W, self.ts_sigma2, self._c64["tau"],
+            self._c64["nu"], self._b["polyak"], self._c64["sigma2_min"], act,
+        )  # fmt: skip
+        self._tgt(self.P, rate, act)
+
+        stats = StepStats(delta, adv, ratio, divergence, self.decay.clone())
+        cont = torch.from_numpy(act_np & ~done_np)
+        self._obs = torch.where(cont.view(K, 1), nxt, self._obs)
+        self._u = torch.where(cont.view(K, 1), u_next, self._u)
+        self._logp_b = torch.where(cont, logp_b_next, self._logp_b)
+        self._value_b = torch.where(cont, values[:, 1], self._value_b)
+        self._pending &= ~(act_np & done_np)
+        return stats, self.action_map.to_action(u_next).numpy()
+
+    # -- state ----------------------------------------------------------------------------
+    def member_state(self, k: int) -> dict[str, Any]:
+        """Everything needed to continue member k at an episode boundary (cloned tensors).
+
+        With the pending transition, so a member can be continued mid-episode too.
+        """
+        return member_state(self, k)
+
+    def load_member_state(self, k: int, config: OnlineConfig, state: dict[str, Any]) -> None:
+        """Restore :meth:`member_state` into slot k with ``config`` (and its pending step)."""
+        load_member_state(self, k, config, state)
