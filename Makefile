@@ -37,7 +37,7 @@ reproduce-paper: $(VENV)/.installed
 
 ## Benchmarks (long): throughput, learning quality, and the batch trainer against SB3.
 bench: bench-sb3
-	$(PY) benchmarks/throughput.py --compile --breakdown
+	$(PY) benchmarks/throughput.py
 	$(PY) benchmarks/learning.py
 
 ## The batch trainer against Stable-Baselines3's PPO (installs SB3 for this only), ~20 min.

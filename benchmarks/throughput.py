@@ -1,16 +1,17 @@
-"""Throughput of the online learner against the raw environment, side by side.
+"""Throughput of the online learner: the environments, the scalar reference, and the
+population learner at several K, side by side in one process (torch on one thread).
 
-For each task it measures, in one process with torch on one thread:
+It measures, in alternating rounds so that machine noise hits every variant alike:
 
-* raw environment steps/s with random actions;
-* full-learner training steps/s (environment step + one learner update per step).
+* raw environment steps/s of the four tasks (random actions);
+* the learner's cost per member-step on synthetic transitions of each task's size:
+  the scalar reference learner (pporpe 0.2.0's single-run learner, kept in
+  tests/reference_online.py) and the population learner at K = 1, 4, 15, 30, 60
+  (compiled update); as member-steps/s and as the ratio to the task's env step;
+* the estimated wall time of experiments/paper.toml on this machine from those rates.
 
-Rounds alternate the two so that machine noise hits both alike; the table reports
-medians over rounds, the ratio training/raw, and the learner's own cost per step
-(1/train - 1/raw) next to the environment's (1/raw).
-
-    python benchmarks/throughput.py [--steps 3000] [--rounds 3] [--compile] [--breakdown]
-                                    [--out FILE]
+    python benchmarks/throughput.py [--steps 150] [--rounds 3] [--ks 1 4 15 30 60]
+                                    [--workers 2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -20,24 +21,41 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from _common import write_json
+from reference_online import ReferenceLearner
 
 from pporpe.envs import env_spec_summary, make_env
-from pporpe.online import OnlineLearner
+from pporpe.experiments.grid import load_spec
 from pporpe.online.config import OnlineConfig
+from pporpe.online.population import PopulationLearner
 
-TARGETS = {"pendulum": 2000.0, "halfcheetah": 1400.0}
+HERE = Path(__file__).resolve().parent
+TASKS = ("pendulum", "swingup", "halfcheetah", "ant")
+MAX_EPISODE_STEPS = 1000
+"""The time limit of the four Bullet tasks under Gymnasium: an episode's length bound."""
 
 
-def raw_steps_per_s(env_name: str, steps: int, seed: int) -> float:
-    env = make_env(env_name, seed=seed)
+def spaces(task: str) -> dict[str, Any]:
+    env = make_env(task)
+    try:
+        return env_spec_summary(env)
+    finally:
+        env.close()
+
+
+def env_rate(task: str, steps: int, seed: int) -> float:
+    """Raw environment steps/s with random actions."""
+    env = make_env(task, seed=seed)
     env.reset(seed=seed)
+    env.action_space.seed(seed)
     t0 = time.perf_counter()
     for _ in range(steps):
         _, _, term, trunc, _ = env.step(env.action_space.sample())
@@ -48,156 +66,179 @@ def raw_steps_per_s(env_name: str, steps: int, seed: int) -> float:
     return steps / dt
 
 
-def train_steps_per_s(
-    env_name: str, steps: int, seed: int, cfg: OnlineConfig, warmup: int
-) -> float:
-    env = make_env(env_name, seed=seed)
-    spec = env_spec_summary(env)
-    torch.manual_seed(seed)
-    learner = OnlineLearner(spec["obs_dim"], spec["action_low"], spec["action_high"], cfg)
-    obs, _ = env.reset(seed=seed)
-    action = learner.begin_episode(obs)
-    t0 = 0.0
-    for i in range(warmup + steps):
-        if i == warmup:
-            t0 = time.perf_counter()
-        obs, reward, term, trunc, _ = env.step(action)
-        _, action = learner.step(float(reward), obs, term, trunc)
-        if term or trunc:
-            obs, _ = env.reset()
-            action = learner.begin_episode(obs)
-    dt = time.perf_counter() - t0
-    env.close()
-    return steps / dt
+class PopulationBench:
+    """A population of K members of mixed methods stepping on synthetic transitions."""
 
-
-def breakdown(repeats: int = 500) -> dict[str, float]:
-    """Microseconds per call of each part of one online step (InvertedPendulum sizes)."""
-    torch.manual_seed(0)
-    learner = OnlineLearner(5, -np.ones(1), np.ones(1), OnlineConfig())
-    obs = np.random.default_rng(0).normal(size=(1000, 5)).astype(np.float32)
-    learner.begin_episode(obs[0])
-    for i in range(100):
-        learner.step(0.1, obs[i], False, False)
-    assert learner._obs is not None and learner._u is not None
-    x = torch.cat([learner._obs, torch.as_tensor(obs[5]).reshape(1, 5)])
-    scalars = torch.tensor([0.1, 0.99])
-
-    def loss() -> tuple[torch.Tensor, ...]:
-        return learner._loss_fn(
-            learner._pol_views,
-            learner._val_views,
-            learner._tgt_views,
-            x,
-            learner._u,
-            learner._logp_b,
-            learner._value_b,
-            scalars[0],
-            scalars[1],
+    def __init__(self, spec: dict[str, Any], k: int) -> None:
+        methods = ("ppo", "rb", "rpe")
+        cfgs = [OnlineConfig(method=methods[i % 3], compile=True) for i in range(k)]
+        self.k, self.obs_dim = k, spec["obs_dim"]
+        self.learner = PopulationLearner(
+            self.obs_dim, spec["action_low"], spec["action_high"], cfgs, list(range(k))
         )
+        self.rng = np.random.default_rng(0)
+        self.learner.begin_episode(range(k), self.rng.normal(size=(k, self.obs_dim)))
+        self.run(30)  # compile and warm up
 
-    def forward_backward() -> None:
-        out = loss()
-        learner._grad.zero_()
-        out[0].backward()
-
-    raw = torch.randn(1, learner.head.raw_dim)
-    u = learner.head.sample(raw)
-    div = torch.tensor(0.01)
-    parts = {
-        "forward + loss": loss,
-        "forward + loss + backward": forward_backward,
-        "sample (head.sample)": lambda: learner.head.sample(raw),
-        "sample (torch.distributions)": lambda: learner.head.distribution(raw).sample(),
-        "head log_prob": lambda: learner.head.log_prob(raw, u),
-        "traces.step_": lambda: learner.traces.step_(learner._grad, div),
-        "optimizer.step": learner.optimizer.step,
-        "tsoft.update_": lambda: learner.tsoft.update_(
-            learner.target, learner.theta[learner.n_policy :]
-        ),
-        "full learner.step": lambda: learner.step(0.1, obs[7], False, False),
-    }
-    out = {}
-    for name, fn in parts.items():
-        for _ in range(20):
-            fn()
+    def run(self, steps: int) -> float:
+        """Seconds per member-step over ``steps`` steps."""
+        k, rng, no = self.k, self.rng, np.zeros(self.k, dtype=bool)
+        obs = rng.normal(size=(steps, k, self.obs_dim)).astype(np.float32)
+        rewards = rng.normal(size=(steps, k))
         t0 = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        out[name] = (time.perf_counter() - t0) / repeats * 1e6
-    return out
+        for t in range(steps):
+            self.learner.step(rewards[t], obs[t], no, no)
+        return (time.perf_counter() - t0) / (steps * k)
+
+
+class ReferenceBench:
+    """The scalar reference learner (one run) on synthetic transitions."""
+
+    def __init__(self, spec: dict[str, Any]) -> None:
+        torch.manual_seed(0)
+        self.obs_dim = spec["obs_dim"]
+        self.learner = ReferenceLearner(
+            self.obs_dim, spec["action_low"], spec["action_high"], OnlineConfig()
+        )
+        self.rng = np.random.default_rng(0)
+        self.learner.begin_episode(self.rng.normal(size=self.obs_dim).astype(np.float32))
+        self.run(30)
+
+    def run(self, steps: int) -> float:
+        """Seconds per step over ``steps`` steps."""
+        obs = self.rng.normal(size=(steps, self.obs_dim)).astype(np.float32)
+        t0 = time.perf_counter()
+        for t in range(steps):
+            self.learner.step(0.1, obs[t], False, False)
+        return (time.perf_counter() - t0) / steps
+
+
+def paper_estimate(
+    env_s: dict[str, float], learner_s: dict[str, float], workers: int, k: int
+) -> dict[str, Any]:
+    """Wall time of experiments/paper.toml from per-step costs (an upper bound: episodes
+    that end before the time limit are shorter)."""
+    spec = load_spec(HERE.parent / "experiments" / "paper.toml")
+    per_task: dict[str, dict[str, float]] = {}
+    for run in spec.runs:
+        cfg = run.config
+        steps = (cfg.episodes or 0) * MAX_EPISODE_STEPS if cfg.episodes else cfg.steps
+        row = per_task.setdefault(run.env, {"runs": 0, "member_steps": 0.0})
+        row["runs"] += 1
+        row["member_steps"] += float(steps)
+    total = 0.0
+    for task, row in per_task.items():
+        row["s_per_member_step"] = learner_s[task] + env_s[task]
+        row["cpu_hours"] = row["member_steps"] * row["s_per_member_step"] / 3600
+        total += row["cpu_hours"]
+    return {
+        "formula": (
+            "hours = sum over tasks of runs x episodes x 1000 steps x (learner s per "
+            f"member-step at K = {k} + env s per step) / 3600 / workers ({workers})"
+        ),
+        "per_task": per_task,
+        "cpu_hours": total,
+        "wall_hours": total / workers,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", nargs="+", default=["pendulum", "halfcheetah"])
-    parser.add_argument("--steps", type=int, default=3000, help="timed steps per measurement")
+    parser.add_argument("--steps", type=int, default=150, help="timed steps per measurement")
+    parser.add_argument("--env-steps", type=int, default=3000, help="timed raw env steps")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds")
-    parser.add_argument("--compile", action="store_true", help="also measure compile=True")
+    parser.add_argument("--ks", type=int, nargs="+", default=[1, 4, 15, 30, 60])
     parser.add_argument(
-        "--breakdown",
-        action="store_true",
-        help="also time each part of one online step (microseconds per call)",
+        "--sizes",
+        nargs="+",
+        default=["pendulum", "halfcheetah"],
+        help="tasks whose sizes get the K sweep (the others: the estimate's K only)",
     )
+    parser.add_argument("--k", type=int, default=15, help="K of the paper-grid estimate")
+    parser.add_argument("--workers", type=int, default=2, help="workers of the estimate")
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    parts = breakdown() if args.breakdown else None
-    if parts is not None:
-        print(f"{'part of one online step':32s} {'us/call':>9s}")
-        for name, us in parts.items():
-            print(f"{name:32s} {us:9.1f}")
-        print()
+    torch._dynamo.config.cache_size_limit = 256  # every shape keeps its compiled update
 
-    variants = {"eager": OnlineConfig()}
-    if args.compile:
-        variants["compiled"] = OnlineConfig(compile=True)
+    specs = {t: spaces(t) for t in TASKS}
+    print("building learners (compiling the update for every shape) ...", flush=True)
+    benches: dict[tuple[str, str], Any] = {}
+    for task in TASKS:
+        ks = sorted({*args.ks, args.k}) if task in args.sizes else [args.k]
+        if task in args.sizes:
+            benches[(task, "reference")] = ReferenceBench(specs[task])
+        for k in ks:
+            benches[(task, f"K={k}")] = PopulationBench(specs[task], k)
+    env_rounds: dict[str, list[float]] = {t: [] for t in TASKS}
+    cost_rounds: dict[tuple[str, str], list[float]] = {key: [] for key in benches}
+    for r in range(args.rounds):
+        for task in TASKS:
+            env_rounds[task].append(env_rate(task, args.env_steps, seed=r))
+        for key, bench in benches.items():
+            cost_rounds[key].append(bench.run(args.steps))
+        print(f"round {r + 1}/{args.rounds} done", flush=True)
+
+    env_s = {t: 1.0 / statistics.median(v) for t, v in env_rounds.items()}
     rows = []
-    for env_name in args.envs:
-        raw: list[float] = []
-        train: dict[str, list[float]] = {k: [] for k in variants}
-        for r in range(args.rounds):
-            raw.append(raw_steps_per_s(env_name, args.steps, seed=r))
-            for name, cfg in variants.items():
-                warmup = 200 if not cfg.compile else 400
-                train[name].append(train_steps_per_s(env_name, args.steps, r, cfg, warmup))
-        raw_med = statistics.median(raw)
-        for name in variants:
-            tr = statistics.median(train[name])
-            rows.append(
-                {
-                    "env": env_name,
-                    "variant": name,
-                    "raw_steps_per_s": raw_med,
-                    "train_steps_per_s": tr,
-                    "ratio_train_over_raw": tr / raw_med,
-                    "env_ms_per_step": 1e3 / raw_med,
-                    "learner_ms_per_step": 1e3 / tr - 1e3 / raw_med,
-                    "target_train_steps_per_s": TARGETS.get(env_name),
-                    "rounds_raw": raw,
-                    "rounds_train": train[name],
-                }
-            )
-
+    for (task, variant), costs in cost_rounds.items():
+        cost = statistics.median(costs)
+        rows.append(
+            {
+                "task": task,
+                "variant": variant,
+                "learner_us_per_member_step": cost * 1e6,
+                "member_steps_per_s": 1.0 / cost,
+                "learner_over_env_step": cost / env_s[task],
+                "rounds_us": [c * 1e6 for c in costs],
+            }
+        )
+    print()
+    print(f"{'task':12s} {'raw env steps/s':>16s} {'env us/step':>12s}")
+    for task in TASKS:
+        print(f"{task:12s} {1 / env_s[task]:16.0f} {env_s[task] * 1e6:12.0f}")
+    print()
     header = (
-        f"{'env':12s} {'variant':9s} {'raw/s':>9s} {'train/s':>9s} {'ratio':>7s} "
-        f"{'env ms':>8s} {'learner ms':>11s} {'target/s':>9s}"
+        f"{'task':12s} {'learner':10s} {'us/member-step':>15s} {'member-steps/s':>15s} "
+        f"{'learner/env':>12s} {'vs K=1':>7s}"
     )
     print(header)
     print("-" * len(header))
     for row in rows:
-        tgt = row["target_train_steps_per_s"]
+        k1 = next((x for x in rows if x["task"] == row["task"] and x["variant"] == "K=1"), None)
+        speedup = float("nan")
+        if k1 is not None:
+            speedup = k1["learner_us_per_member_step"] / row["learner_us_per_member_step"]
         print(
-            f"{row['env']:12s} {row['variant']:9s} {row['raw_steps_per_s']:9.0f} "
-            f"{row['train_steps_per_s']:9.0f} {row['ratio_train_over_raw']:7.3f} "
-            f"{row['env_ms_per_step']:8.3f} {row['learner_ms_per_step']:11.3f} "
-            f"{tgt if tgt is not None else float('nan'):9.0f}"
+            f"{row['task']:12s} {row['variant']:10s} {row['learner_us_per_member_step']:15.0f} "
+            f"{row['member_steps_per_s']:15.0f} {row['learner_over_env_step']:12.2f} "
+            f"{speedup:7.2f}"
         )
+        row["speedup_vs_k1"] = speedup
+    learner_s = {t: statistics.median(cost_rounds[(t, f"K={args.k}")]) for t in TASKS}
+    est = paper_estimate(env_s, learner_s, args.workers, args.k)
+    print()
+    print("estimated wall time of experiments/paper.toml on this machine:")
+    print("  " + est["formula"])
+    for task, row in est["per_task"].items():
+        steps = row["member_steps"] / row["runs"]
+        print(
+            f"  {task:12s} {row['runs']:3d} runs x {steps:9.0f} steps x "
+            f"{row['s_per_member_step'] * 1e3:.3f} ms = {row['cpu_hours']:6.2f} CPU hours"
+        )
+    print(f"  total {est['cpu_hours']:.1f} CPU hours -> {est['wall_hours']:.1f} hours wall")
     path = write_json(
-        args.out, {"steps": args.steps, "rounds": args.rounds, "rows": rows, "breakdown_us": parts}
+        args.out,
+        {
+            "steps": args.steps,
+            "rounds": args.rounds,
+            "env_steps_per_s": {t: 1 / s for t, s in env_s.items()},
+            "env_rounds_steps_per_s": env_rounds,
+            "rows": rows,
+            "paper_grid_estimate": est,
+        },
     )
     print(f"wrote {path}")
-    np.set_printoptions()
 
 
 if __name__ == "__main__":

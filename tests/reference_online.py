@@ -123,8 +123,6 @@ class ReferenceLearner:
         self.theta.grad = self._update_buf  # what the optimiser reads
         self._reward_scale = cfg.effective_reward_scale
         self._loss_fn = self._loss
-        if cfg.compile:
-            self._loss_fn = torch.compile(self._loss, dynamic=False, fullgraph=False)
         self._reset_pending()
 
     def _reset_pending(self) -> None:

@@ -263,3 +263,57 @@ def test_load_evaluation_reads_what_train_saved(tmp_path: Path) -> None:
     result = train(cfg(episodes=2), tmp_path, progress=False)
     assert load_evaluation(tmp_path) == result.evaluation
     assert load_evaluation(tmp_path / "missing") is None
+
+
+class NaNRewardForSeed(gym.Env):  # type: ignore[type-arg]
+    """A 1-D Box task whose reward turns NaN at step 25 of runs seeded with 1 only."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self) -> None:
+        self.t = self.global_t = 0
+        self.poisoned = False
+
+    def reset(self, *, seed: int | None = None, options: Any = None) -> Any:
+        super().reset(seed=seed)
+        if seed is not None:
+            self.poisoned = seed == 1
+        self.t = 0
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action: Any) -> Any:
+        self.t += 1
+        self.global_t += 1
+        reward = float("nan") if self.poisoned and self.global_t >= 25 else float(action[0])
+        return np.full(2, 0.1 * self.t, np.float32), reward, False, self.t >= 10, {}
+
+
+gym.register("pporpe-test/NaNForSeed1-v0", entry_point=NaNRewardForSeed)
+
+
+def test_a_member_that_goes_non_finite_stops_alone(tmp_path: Path) -> None:
+    """In a population of three runs, the run whose rewards turn NaN stops with the reason
+    in its error.txt and keeps its last good checkpoint; the others finish, with the same
+    records as in a population (of the same packing) where that run stays healthy."""
+    from pporpe.runs.loop import run_queue
+
+    def runs(root: Path, seeds: list[int]) -> list[tuple[TrainConfig, Path]]:
+        return [
+            (cfg(env="pporpe-test/NaNForSeed1-v0", seed=s, episodes=6, checkpoint_every=1,
+                 eval_episodes=0), root / f"s{s}")
+            for s in seeds
+        ]  # fmt: skip
+
+    results = run_queue(runs(tmp_path / "a", [0, 1, 2]), capacity=3, home=tmp_path / "a")
+    assert [r.error is None for r in results] == [True, False, True]
+    err = (tmp_path / "a" / "s1" / "error.txt").read_text()
+    assert "non-finite reward at episode 2, step 5" in err
+    assert not (tmp_path / "a" / "s1" / "done.json").exists()
+    state = torch.load(tmp_path / "a" / "s1" / "checkpoint.pt", weights_only=False)
+    assert len(state["records"]) == 2 and torch.isfinite(state["learner"]["params"]).all()
+    assert all(len(r.records) == 6 for r in (results[0], results[2]))
+    control = run_queue(runs(tmp_path / "b", [0, 3, 2]), capacity=3, home=tmp_path / "b")
+    assert all(r.error is None for r in control)
+    assert strip_time(control[0].records) == strip_time(results[0].records)
+    assert strip_time(control[2].records) == strip_time(results[2].records)

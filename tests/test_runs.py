@@ -217,6 +217,10 @@ class CountTrainer:
     def stop(self, slot: int) -> None:
         del self.runs[slot]
 
+    def compact(self, keep: list[int]) -> None:
+        self.compacted = getattr(self, "compacted", 0) + 1
+        self.runs = {j: self.runs[k] for j, k in enumerate(keep)}
+
     def close(self) -> None:
         self.runs.clear()
 
@@ -318,6 +322,50 @@ def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -
     assert [r.resumed_from for r in resumed] == [4, 2, 2]
     with pytest.raises(ValueError, match="needs a home folder"):
         run_queue(queue(tmp_path / "c"), capacity=2)
+
+
+def test_idle_slots_are_compacted_away_and_the_layout_resumes(tmp_path: Path) -> None:
+    """With the queue empty and at most half the slots busy, the trainer shrinks to the
+    busy runs; population.json records the new layout."""
+    register_kind(CountKind())
+    cfgs = [CountConfig(seed=1, episodes=2), CountConfig(seed=2, episodes=7),
+            CountConfig(seed=3, episodes=2)]  # fmt: skip
+    runs = [(c, tmp_path / f"r{c.seed}") for c in cfgs]
+    results = run_queue(runs, capacity=3, home=tmp_path)
+    assert [len(r.records) for r in results] == [2, 7, 2]
+    assert json.loads((tmp_path / "population.json").read_text())["slots"] == [None]
+
+
+def test_an_online_population_compacts_and_resumes_identically(tmp_path: Path) -> None:
+    """Real online runs: two of three finish early, the population shrinks to the third;
+    a queue stopped after the shrink resumes to the uninterrupted records."""
+    small = OnlineConfig(layers=1, units=8, compile=False)
+
+    def runs(root: Path) -> list[tuple[Any, Path]]:
+        return [
+            (TrainConfig(seed=s, episodes=e, checkpoint_every=1, eval_episodes=0,
+                         learner=small), root / f"s{s}")
+            for s, e in ((0, 3), (1, 12), (2, 3))
+        ]  # fmt: skip
+
+    full = run_queue(runs(tmp_path / "a"), capacity=3, home=tmp_path / "a")
+    assert json.loads((tmp_path / "a" / "population.json").read_text())["slots"] == [None]
+
+    class Stop(RuntimeError):
+        pass
+
+    def stop(rec: Any) -> None:
+        if rec.episode == 7:
+            raise Stop
+
+    with pytest.raises(Stop):
+        run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b", on_episode=stop)
+    saved = json.loads((tmp_path / "b" / "population.json").read_text())
+    assert saved["slots"] == [str(tmp_path / "b" / "s1")]  # compacted before the stop
+    again = run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b")
+    assert [records_without_time(r.records) for r in again] == [
+        records_without_time(r.records) for r in full
+    ]
 
 
 def test_grid_of_batch_runs(tmp_path: Path) -> None:

@@ -66,8 +66,8 @@ def _batch_config(args: argparse.Namespace) -> object:
 
     if args.episodes is not None:
         raise ValueError("--learner batch trains for --steps (environment steps), not --episodes")
-    if args.compile:
-        raise ValueError("--compile applies to the online learner only")
+    if args.compile is not None:
+        raise ValueError("--compile / --no-compile apply to the online learner only")
     overrides = {
         field: getattr(args, arg)
         for arg, field in _BATCH_ARGS.items()
@@ -260,9 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tr.add_argument(
         "--compile",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
-        help="compile the per-step network computation with torch.compile",
+        help="compile the online learner's elementwise update (default: on)",
     )
     tr.add_argument(
         "--checkpoint-every",

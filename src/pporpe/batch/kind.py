@@ -61,6 +61,11 @@ class BatchTrainer:
         self._learner(slot).close()
         self.learner = None
 
+    def compact(self, keep: list[int]) -> None:
+        """One slot: nothing to compact."""
+        if keep != [0]:
+            raise RuntimeError(f"a batch trainer has one slot; cannot keep slots {keep}")
+
     def close(self) -> None:
         """Close the vector environment, if a run is in the slot."""
         if self.learner is not None:

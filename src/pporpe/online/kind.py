@@ -121,6 +121,26 @@ class OnlineTrainer:
         self._slot(slot).env.close()
         self.slots[slot] = None
 
+    def compact(self, keep: list[int]) -> None:
+        """Move the runs of slots ``keep`` into a population of ``len(keep)`` members."""
+        old = self.learner
+        runs = [self._slot(k) for k in keep]
+        self.learner = PopulationLearner(
+            old.obs_dim,
+            old.action_map.low.numpy(),
+            old.action_map.high.numpy(),
+            [s.cfg.learner for s in runs],
+            [s.cfg.seed for s in runs],
+            compile_update=runs[0].cfg.learner.compile,
+        )
+        for j, (k, s) in enumerate(zip(keep, runs, strict=True)):
+            self.learner.load_member_state(j, s.cfg.learner, old.member_state(k))
+        for k, idle in enumerate(self.slots):
+            if idle is not None and k not in keep:
+                idle.env.close()
+        self.slots = list(runs)
+        self.capacity = len(keep)
+
     def close(self) -> None:
         """Close every environment."""
         for slot, s in enumerate(self.slots):

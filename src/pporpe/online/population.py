@@ -206,6 +206,9 @@ class PopulationLearner:
         self._upd: Callable[..., Tensor] = update_chunk
         self._tgt: Callable[..., None] = update_target
         if compile_update:
+            # one compiled update per population shape; a long-lived worker meets several
+            # shapes, and past dynamo's default limit (8) it would fall back to eager
+            torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
             self._upd = torch.compile(update_chunk, dynamic=False)
             self._tgt = torch.compile(update_target, dynamic=False)
         # members are updated in blocks whose state (~10 parameter-sized vectors) fits in

@@ -129,6 +129,11 @@ class Trainer(Protocol):
         """Free the slot."""
         ...
 
+    def compact(self, keep: list[int]) -> None:
+        """Shrink to ``len(keep)`` slots: the run in slot ``keep[j]`` moves to slot ``j``
+        (called when the queue is empty and at most half the slots are busy)."""
+        ...
+
     def close(self) -> None:
         """Release every environment."""
         ...

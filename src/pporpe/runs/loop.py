@@ -17,13 +17,15 @@ A run that fails alone (a non-finite value) leaves its message in ``error.txt`` 
 others go on. With several slots, the loop also keeps ``population.json`` in a home
 folder: which run is in which slot and what is still queued, so that a restarted queue
 resumes with the same packing and produces the same numbers as an uninterrupted one.
-A killed run loses at most the work since its last checkpoint; records never have a
-gap or a duplicate.
+When the queue is empty and at most half the slots are busy, the trainer is compacted to
+the busy runs (idle slots of a population would still cost compute). A killed run loses
+at most the work since its last checkpoint; records never have a gap or a duplicate.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -215,10 +217,10 @@ def run_queue(
         saved = json.loads(pop_file.read_text())
         if saved.get("runs") == [str(d) for d in dirs]:  # the same job: the same packing
             by_dir = {str(d): i for i, d in enumerate(dirs)}
-            slots = [by_dir.get(d) if d else None for d in saved["slots"]][:capacity]
-            slots += [None] * (capacity - len(slots))
-            queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
+            slots = [by_dir.get(d) if d else None for d in saved["slots"]]
             slots = [i if i in pending else None for i in slots]
+            queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
+            capacity = len(slots)
     trainer = kind.make_trainer(cfgs[pending[0]], capacity)
     books: dict[int, _Run] = {}
 
@@ -325,6 +327,17 @@ def run_queue(
                 elif trainer.finished(slot):
                     finish(slot)
                     changed = True
+            busy = [slot for slot, i in enumerate(slots) if i is not None]
+            if len(slots) > 1 and not queue and busy and len(busy) <= len(slots) // 2:
+                # the idle slots would still cost compute: move the runs to a smaller trainer
+                trainer.compact(busy)
+                moved = {j: books[slot] for j, slot in enumerate(busy)}
+                books.clear()
+                books.update(moved)
+                slots[:] = [slots[slot] for slot in busy]
+                changed = True
+                # checkpoint in the new layout: a resumed queue then continues bitwise
+                due, last_checkpoint = True, -math.inf
             if due and time.perf_counter() - last_checkpoint >= checkpoint_seconds:
                 for slot, book in list(books.items()):
                     try:
