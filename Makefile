@@ -31,7 +31,7 @@ reproduce: $(VENV)/.installed
 	$(VENV)/bin/pporpe figures --out $(OUT)/figures
 	$(VENV)/bin/pporpe reproduce experiments/quick.toml --out $(OUT)/quick --report
 
-## The paper's full grid (3 methods x 4 tasks x 10 seeds): days on one machine.
+## The paper's full grid (3 methods x 4 tasks x 10 seeds): about 20 hours on 2 cores (estimated by benchmarks/throughput.py).
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report
 

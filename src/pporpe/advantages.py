@@ -67,10 +67,16 @@ def regularized_advantage(
     one_minus_gamma: float | Tensor,
     beta_td: float | Tensor,
     beta_de: float | Tensor,
+    td_scale: float | Tensor = 1.0,
 ) -> Tensor:
     r"""The online learner's advantage with TD and entropy regularisation folded in.
 
-    .. math:: A = \delta - (1 - \gamma)\,(\beta_{TD}\,\delta^2 + \beta_{DE}\,\log\pi(a|s))
+    .. math:: A = \delta - (1 - \gamma)\,(\beta_{TD}\,(c\,\delta)^2
+              + \beta_{DE}\,\log\pi(a|s))
+
+    ``td_scale`` c sets the units of the TD error in the penalty: 1 squares delta as it is
+    (in scaled-reward units), 1 / (1 - gamma) squares the unscaled TD error (the author's
+    test bed).
 
     The entropy term (weight ``beta_de``, SAC-style) rewards unlikely actions; the TD term
     (weight ``beta_td``, after Parisi et al. 2019) penalises large TD errors. ``log_prob``
@@ -78,4 +84,5 @@ def regularized_advantage(
     such (computed in float64 where gamma is a Python float); the weights may be
     per-member ``[K]`` tensors.
     """
-    return delta - one_minus_gamma * (beta_td * delta * delta + beta_de * log_prob)
+    td = delta * td_scale
+    return delta - one_minus_gamma * (beta_td * td * td + beta_de * log_prob)

@@ -332,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--population",
         type=_positive_int,
         default=None,
-        help="online runs of one task trained at once by one worker (default 15)",
+        help="online runs of one task trained at once by one worker (default 30)",
     )
     rp.add_argument(
         "--checkpoint-seconds",

@@ -117,6 +117,11 @@ class NetLayout:
             idx.append(torch.cat([torch.arange(s.offset, s.offset + s.real[j]) for s in slots]))
         self.real_index = (idx[0], idx[1])
         """Positions of the real elements, in ``module.parameters()`` order, per net kind."""
+        self.norm_rows = torch.tensor(
+            [s.offset // units for h in self.hidden for s in h[2:] if s is not None],
+            dtype=torch.int64,
+        )
+        """Rows of the LayerNorm scales and shifts (one row each)."""
 
     def view(self, flat: Tensor, slot: TensorSlot) -> Tensor:
         """The ``[B, *slot.shape]`` view of ``slot`` inside ``flat`` of shape ``[B, n_pad]``."""

@@ -112,6 +112,10 @@ class PolicyHead(ABC):
         """Return ``distribution(raw).log_prob(u)`` (shape ``[...]``)."""
         return self.distribution(raw).log_prob(u)
 
+    @abstractmethod
+    def kl(self, raw_p: Tensor, raw_q: Tensor) -> Tensor:
+        """KL(p || q) between the distributions of two raw outputs (shape ``[...]``)."""
+
     def sample(self, raw: Tensor) -> Tensor:
         """Return ``distribution(raw).sample()`` without building the distribution objects.
 
@@ -185,6 +189,38 @@ class StudentTHead(PolicyHead):
         per_dim = torch.log(scale) + half_df1 * torch.log1p(((u - loc) / scale).square() / df)
         return self.act_dim * (const.squeeze(-1) - _HALF_LOG_PI) - per_dim.sum(-1)
 
+    def kl(self, raw_p: Tensor, raw_q: Tensor) -> Tensor:
+        """Approximate KL(p || q) (the normal-gamma form; see :func:`_student_t_kl`)."""
+        return _student_t_kl(raw_p, raw_q, self)
+
+
+def _student_t_kl(raw_p: Tensor, raw_q: Tensor, head: StudentTHead) -> Tensor:
+    r"""Approximate KL(p || q) of two diagonal student-t with one df per state each.
+
+    Student-t as a normal-gamma scale mixture, the KL of the two normal-gamma joints
+    (Roth et al., "On the multivariate t distribution", arXiv:1611.01437), as the
+    author's test bed uses it: with :math:`v = (s_p/s_q)^2` and
+    :math:`m = ((\mu_p - \mu_q)/s_q)^2` per dimension,
+
+    .. math:: \tfrac12 \sum_d (v + m - 1 - \log v) + \tfrac12 [\nu_q (\log\nu_p - \log\nu_q)
+              - 2(\log\Gamma(\nu_p/2) - \log\Gamma(\nu_q/2))
+              + (\nu_p - \nu_q)(\psi(\nu_p/2) - 1)]
+
+    It is 0 for p = q and tends to the Gaussian KL as both df grow.
+    """
+    loc_p, scale_p, df_p = head.split(raw_p)
+    loc_q, scale_q, df_q = head.split(raw_q)
+    var_ratio = (scale_p / scale_q).square()
+    mean_term = ((loc_p - loc_q) / scale_q).square()
+    gauss = 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio)).sum(-1)
+    dp, dq = df_p[..., 0], df_q[..., 0]
+    ddf = 0.5 * (
+        dq * (torch.log(dp) - torch.log(dq))
+        - 2.0 * (torch.lgamma(0.5 * dp) - torch.lgamma(0.5 * dq))
+        + (dp - dq) * (torch.digamma(0.5 * dp) - 1.0)
+    )
+    return gauss + ddf
+
 
 class NormalHead(PolicyHead):
     """Diagonal Gaussian policy head: ``raw = [loc, scale_raw]``, ``raw_dim = 2 * act_dim``."""
@@ -216,6 +252,14 @@ class NormalHead(PolicyHead):
         loc, scale = self.split(raw)
         z = (u - loc) / scale
         return -(0.5 * z * z + torch.log(scale)).sum(-1) - self.act_dim * _HALF_LOG_2PI
+
+    def kl(self, raw_p: Tensor, raw_q: Tensor) -> Tensor:
+        """Exact KL(p || q) of two diagonal Gaussians."""
+        loc_p, scale_p = self.split(raw_p)
+        loc_q, scale_q = self.split(raw_q)
+        var_ratio = (scale_p / scale_q).square()
+        mean_term = ((loc_p - loc_q) / scale_q).square()
+        return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio)).sum(-1)
 
 
 def make_head(kind: str, act_dim: int, min_scale: float = 1e-3, **kwargs: float) -> PolicyHead:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 from ..config import (
     Activation,
@@ -18,7 +19,26 @@ from ..config import (
     validate_surrogate_fields,
 )
 
-__all__ = ["OnlineConfig", "TrainConfig"]
+__all__ = [
+    "AMSGRAD_MAXES",
+    "CRITIC_SIGNALS",
+    "ENTROPY_DENSITIES",
+    "TD_UNITS",
+    "TRACE_DIVERGENCES",
+    "OnlineConfig",
+    "TrainConfig",
+]
+
+CriticSignal = Literal["td", "actor"]
+CRITIC_SIGNALS: tuple[str, ...] = get_args(CriticSignal)
+TDUnits = Literal["scaled", "unscaled"]
+TD_UNITS: tuple[str, ...] = get_args(TDUnits)
+EntropyDensity = Literal["action", "pre_squash"]
+ENTROPY_DENSITIES: tuple[str, ...] = get_args(EntropyDensity)
+AmsgradMax = Literal["bias_corrected", "raw"]
+AMSGRAD_MAXES: tuple[str, ...] = get_args(AmsgradMax)
+TraceDivergence = Literal["sample", "analytic"]
+TRACE_DIVERGENCES: tuple[str, ...] = get_args(TraceDivergence)
 
 
 @dataclass(frozen=True)
@@ -50,7 +70,12 @@ class OnlineConfig:
     k_dof: float = 1.0
     """t-momentum degrees of freedom per parameter, > 0 (``inf`` gives LaProp)."""
     amsgrad_decay: float = 0.999
-    """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none)."""
+    """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none); the
+    author's optimiser uses 0.99999."""
+    amsgrad_max: AmsgradMax = "bias_corrected"
+    """td-AmsProp's running maximum: over the bias-corrected second moment
+    (``"bias_corrected"``, pporpe 0.2) or over the raw one, bias-corrected after
+    (``"raw"``, the author's optimiser)."""
     tau: float = 0.3
     """t-soft target update rate tau, in (0, 1]."""
     nu: float = 1.0
@@ -63,6 +88,24 @@ class OnlineConfig:
     """Gain beta_TD >= 0 of TD regularisation (Parisi et al. 2019)."""
     beta_de: float = 0.01
     """Gain beta_DE >= 0 of entropy regularisation (SAC-style)."""
+    td_units: TDUnits = "scaled"
+    """Units of delta in the TD regulariser: ``"scaled"``, beta_TD * delta^2 with delta in
+    scaled-reward units (pporpe 0.2), or ``"unscaled"``, beta_TD * (delta / (1 - gamma))^2
+    (the author's test bed): 1 / (1 - gamma)^2 = 10^4 times stronger at gamma = 0.99."""
+    entropy_density: EntropyDensity = "action"
+    """Log-density in the entropy regulariser: of the bounded action, the map's Jacobian
+    included (``"action"``, pporpe 0.2), or of the pre-map variable u (``"pre_squash"``,
+    the author's test bed)."""
+    critic_signal: CriticSignal = "td"
+    """What trains the value network: the TD error (``"td"``: delta * grad V, pporpe
+    0.2), or the actor's signal and weight (``"actor"``: A * rho_dagger * grad V with
+    rho_dagger = obj(rho, A) / A detached, the surrogate's effective ratio; the author's
+    test bed trains both networks with -A * rho_w * (V + log pi))."""
+    trace_divergence: TraceDivergence = "sample"
+    """Divergence that cuts the adaptive traces: ``"sample"``, (rho - 1 - log rho) +
+    (V - V_b)^2 at the sampled action (pporpe 0.2), or ``"analytic"``, KL(pi || pi_b)
+    between the two policies at s_t (a normal-gamma approximation for the student-t) +
+    (V - V_b)^2 / 2 (the author's test bed)."""
     reward_scale: float | None = None
     """Multiplier of rewards; ``None`` means 1 - gamma (the author's test bed)."""
     layers: int = 5
@@ -71,6 +114,9 @@ class OnlineConfig:
     """Units N per hidden layer, >= 1."""
     layer_norm: bool = True
     """LayerNorm after each hidden linear layer."""
+    layer_norm_affine: bool = True
+    """Learn LayerNorm's scale and shift (pporpe 0.2); False keeps them at 1 and 0, as the
+    author's networks, which have none."""
     activation: Activation = "swish"
     """Hidden activation: ``"swish"`` (x*sigmoid(x)), ``"relu"`` or ``"tanh"``."""
     policy: PolicyKind = "student_t"
@@ -127,6 +173,21 @@ class OnlineConfig:
         )
         validate_network_fields(self)
         require(isinstance(self.compile, bool), "compile", self.compile, "True or False")
+        require(
+            isinstance(self.layer_norm_affine, bool),
+            "layer_norm_affine",
+            self.layer_norm_affine,
+            "True or False",
+        )
+        for name, allowed in (
+            ("td_units", TD_UNITS),
+            ("entropy_density", ENTROPY_DENSITIES),
+            ("critic_signal", CRITIC_SIGNALS),
+            ("trace_divergence", TRACE_DIVERGENCES),
+            ("amsgrad_max", AMSGRAD_MAXES),
+        ):
+            value = getattr(self, name)
+            require(value in allowed, name, value, f"one of {list(allowed)}")
 
     @property
     def effective_reward_scale(self) -> float:

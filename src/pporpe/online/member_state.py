@@ -50,6 +50,7 @@ def member_state(pop: PopulationLearner, k: int) -> dict[str, Any]:
             "u": pop._u[k].clone(),
             "logp_b": pop._logp_b[k].clone(),
             "value_b": pop._value_b[k].clone(),
+            "raw_b": pop._raw_b[k].clone(),
         },
     }
 
@@ -77,3 +78,4 @@ def load_member_state(
     if pending is not None:
         pop._obs[k], pop._u[k] = pending["obs"], pending["u"]
         pop._logp_b[k], pop._value_b[k] = pending["logp_b"], pending["value_b"]
+        pop._raw_b[k] = pending.get("raw_b", torch.zeros(pop.head.raw_dim))

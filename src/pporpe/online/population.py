@@ -189,11 +189,14 @@ class PopulationLearner:
                 "opt_eps",
                 "omb_mom",
                 "w_coef",
+                "td_scale",
             ]
         }
         self._c64 = {n: torch.zeros(K, dtype=torch.float64) for n in ("tau", "nu", "sigma2_min")}
-        self._b = {n: torch.zeros(K, dtype=torch.bool) for n in ("kappa_pos", "mom_only", "polyak")}
-        self._np = {n: np.zeros(K) for n in ("beta1", "beta2", "lr", "ams_decay")}
+        flags = ("kappa_pos", "mom_only", "polyak", "pre_squash", "critic_actor", "kl_analytic")
+        self._b = {n: torch.zeros(K, dtype=torch.bool) for n in (*flags, "ln_frozen")}
+        self._np = {n: np.zeros(K) for n in ("beta1", "beta2", "lr", "ams_decay", "ams_raw")}
+        self._norm_keep = torch.ones(K, lay.n_rows)  # 0 on frozen LayerNorm rows
         self.configs: list[OnlineConfig] = list(configs)
         self._groups: list[tuple[tuple[Any, ...], Tensor]] = []
         # pending transition state
@@ -201,6 +204,7 @@ class PopulationLearner:
         self._u = torch.zeros(K, self.act_dim)
         self._logp_b = torch.zeros(K)
         self._value_b = torch.zeros(K)
+        self._raw_b = torch.zeros(K, self.head.raw_dim)  # pi_b's raw output at s_t
         self._pending = np.zeros(K, dtype=bool)
         self._row_seg = lay.row_seg
         self._upd: Callable[..., Tensor] = update_chunk
@@ -250,6 +254,15 @@ class PopulationLearner:
         c["one_m_gamma"][k] = 1.0 - cfg.gamma
         c["beta_td"][k] = cfg.beta_td
         c["beta_de"][k] = cfg.beta_de
+        c["td_scale"][k] = 1.0 if cfg.td_units == "scaled" else 1.0 / (1.0 - cfg.gamma)
+        b["pre_squash"][k] = cfg.entropy_density == "pre_squash"
+        b["critic_actor"][k] = cfg.critic_signal == "actor"
+        b["kl_analytic"][k] = cfg.trace_divergence == "analytic"
+        b["ln_frozen"][k] = self.lay.layer_norm and not cfg.layer_norm_affine
+        self._norm_keep[k] = 1.0
+        if b["ln_frozen"][k]:
+            self._norm_keep[k, self.lay.norm_rows] = 0.0
+        nps["ams_raw"][k] = float(cfg.amsgrad_max == "raw")
         c["neg_kappa"][k] = -cfg.kappa
         b["kappa_pos"][k] = cfg.kappa > 0.0
         c["gl1"][k] = cfg.gamma * cfg.lambdas[0]
@@ -404,19 +417,23 @@ class PopulationLearner:
         self._u[ti] = u
         self._logp_b[ti] = self.head.log_prob(raw[ti], u)
         self._value_b[ti] = value[ti]
+        self._raw_b[ti] = raw[ti]
         self._pending[idx] = True
         return self.action_map.to_action(u).numpy()
 
     # -- learning -------------------------------------------------------------------------
-    def _head_grad(self, raw0: Tensor, ratio: Tensor, sigma: Tensor) -> Tensor:
-        """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)``, one surrogate call per group."""
+    def _head_grad(self, raw0: Tensor, ratio: Tensor, sigma: Tensor) -> tuple[Tensor, Tensor]:
+        """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)``, one surrogate call per group,
+        and the surrogates' effective ratios rho_dagger = sigma obj(rho, sigma) (detached)."""
         loss = ratio.new_zeros(())
+        rho_dagger = torch.empty_like(ratio)
         for (method, eps, beta, eta, form), ix in self._groups:
             rho, sig = (ratio, sigma) if len(self._groups) == 1 else (ratio[ix], sigma[ix])
             obj = surrogate_objective(method, rho, sig, eps, beta, eta, form)
             loss = loss + (-sig * obj).sum()
+            rho_dagger[ix] = (sig * obj).detach()
         (grad,) = torch.autograd.grad(loss, raw0)
-        return grad
+        return grad, rho_dagger
 
     def step(
         self,
@@ -458,21 +475,31 @@ class PopulationLearner:
             logp = self.head.log_prob(raw0, self._u)
             log_ratio_g = logp - self._logp_b
             ratio_g = torch.exp(log_ratio_g)
-            # entropy term with the density of the bounded action a = f(u)
-            logp_action = logp.detach() - self.action_map.log_abs_det_jacobian(self._u)
+            # entropy term: the density of the bounded action a = f(u) (map Jacobian
+            # included), or of u itself ("pre_squash")
+            jac = self.action_map.log_abs_det_jacobian(self._u)
+            logp_entropy = logp.detach() - torch.where(self._b["pre_squash"], 0.0, jac)
             adv = regularized_advantage(
-                delta, logp_action, c["one_m_gamma"], c["beta_td"], c["beta_de"]
+                delta, logp_entropy, c["one_m_gamma"], c["beta_td"], c["beta_de"], c["td_scale"]
             )
             sigma = torch.where(adv >= 0, 1.0, -1.0)
-            d_raw = self._head_grad(raw0, ratio_g, sigma)
+            d_raw, rho_dagger = self._head_grad(raw0, ratio_g, sigma)
         log_ratio, ratio = log_ratio_g.detach(), ratio_g.detach()
         divergence = (ratio - 1.0 - log_ratio) + (v - self._value_b) ** 2
+        if self._b["kl_analytic"].any():
+            kl = torch.relu(self.head.kl(raw[:, 0], self._raw_b))
+            analytic = kl + 0.5 * (v - self._value_b) ** 2
+            divergence = torch.where(self._b["kl_analytic"], analytic, divergence)
+        critic_actor = self._b["critic_actor"]
         dout = torch.zeros(2 * K, lay.raw_dim)
         dout[:K] = d_raw
-        dout[K:, 0] = -1.0  # d(-V(s_t)) / dV
+        # d(-w V(s_t)) / dV: w = 1 (TD signal) or rho_dagger (the actor's weight)
+        dout[K:, 0] = torch.where(critic_actor, -rho_dagger, -1.0)
         backward_row0(
             self._flat(2), self.G.view(2 * K, lay.n_pad), dout, cache, lay, self.activation
         )
+        if self._b["ln_frozen"].any():  # LayerNorm without learnt scale and shift
+            self.G.mul_(self._norm_keep.view(1, K, lay.n_rows, 1))
 
         # a_{t+1} from theta_t, before the update (the step order above)
         raw1 = raw[:, 1]
@@ -488,7 +515,8 @@ class PopulationLearner:
         )  # fmt: skip
         self.steps += act_np.astype(np.int64)
         scal = opt_scalars(self.steps, self._np)
-        signal = torch.stack([adv, delta])  # A on the policy block, delta on the value block
+        # A on the policy block; delta (or A, with the actor's weight) on the value block
+        signal = torch.stack([adv, torch.where(critic_actor, adv, delta)])
         per_member = (
             c1, c2, c["beta2"], c["one_m_beta2"], scal[0], scal[1], c["opt_eps"],
             self._b["mom_only"], c["omb_mom"], c["w_coef"],
@@ -523,6 +551,7 @@ class PopulationLearner:
         self._u = torch.where(cont.view(K, 1), u_next, self._u)
         self._logp_b = torch.where(cont, logp_b_next, self._logp_b)
         self._value_b = torch.where(cont, values[:, 1], self._value_b)
+        self._raw_b = torch.where(cont.view(K, 1), raw1.detach(), self._raw_b)
         self._pending &= ~(act_np & done_np)
         return stats, self.action_map.to_action(u_next).numpy()
 

@@ -276,7 +276,10 @@ def opt_scalars(steps: np.ndarray, consts: dict[str, np.ndarray]) -> tuple[Tenso
     bc1 = 1.0 - consts["beta1"] ** t
     bc2 = 1.0 - consts["beta2"] ** t
     bc2_prev = np.where(t > 1, 1.0 - consts["beta2"] ** (t - 1), 1.0)
-    vfac = np.where(t > 1, consts["ams_decay"] * bc2 / bc2_prev, 1.0)
+    # the maximum of the bias-corrected moment (vmax_s is stored scaled by bc2), or of the
+    # raw moment, bias-corrected after (ams_raw)
+    ratio = np.where(consts["ams_raw"] > 0, 1.0, bc2 / bc2_prev)
+    vfac = np.where(t > 1, consts["ams_decay"] * ratio, 1.0)
     vfac = np.where(consts["ams_decay"] > 0, vfac, 0.0)
     out = torch.from_numpy(np.stack([vfac, np.sqrt(bc2), consts["lr"] / bc1]).astype(np.float32))
     return out[0], out[1], out[2]

@@ -52,6 +52,17 @@ def _normalized(data: dict[str, Any]) -> dict[str, Any]:
     return {"kind": "online", **data}
 
 
+def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
+    """The kind and configuration of ``config.json`` content, or None if it does not parse."""
+    data = _normalized(data)
+    try:
+        kind = get_kind(data["kind"])
+        body = {k: v for k, v in data.items() if k != "kind"}
+        return kind.name, config_from_dict(kind.config_type, body)
+    except (KeyError, ValueError):
+        return None
+
+
 def read_config(run_dir: str | Path) -> tuple[LearnerKind, Any]:
     """The learner kind and run configuration saved in ``run_dir/config.json``."""
     path = Path(run_dir) / "config.json"
@@ -67,13 +78,15 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
 
     Returns the folder and whether the run is complete (``done.json`` exists). A folder
     that holds a run with a different config is refused, so results are never mixed.
+    Configs are compared as parsed settings: a field added by a later pporpe version, at
+    its default, is the same run as the folder's.
     """
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     path = run / "config.json"
     if not path.exists():
         atomic_write_json(path, config)
-    elif _normalized(json.loads(path.read_text())) != _normalized(config):
+    elif (stored := _parsed(json.loads(path.read_text()))) is None or stored != _parsed(config):
         raise ValueError(
             f"{run} holds a run with a different config; use another --out folder "
             "or delete it to start over"

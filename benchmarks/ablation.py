@@ -1,0 +1,166 @@
+"""Ablation of the learner choices where pporpe 0.2 and the author's test bed differ.
+
+Each *variant* is the baseline (pporpe 0.2's choices) with one change, or all changes
+together; every variant runs the paper's comparison (PPO, PPO-RB, PPO-RPE) on
+InvertedPendulum and Swingup at the paper's 200 episodes with 10 seeds, through the grid
+machinery (populations, checkpoints, resume). It prints, per variant, task and method:
+
+* the mean and the interquartile mean (IQM) of the per-seed score (median of the test
+  episodes), each with a bootstrap 95% CI (scipy.stats.bootstrap, BCa, 10,000 resamples);
+* the mean return of the first 50 training episodes (early learning), with its CI;
+* the number of seeds whose score reaches 950 (pendulum) or 800 (swingup).
+
+The compute is large (Swingup's episodes are always 1000 steps), so the benchmark runs in
+chunks: choose them with ``--variants`` and ``--tasks``; finished runs are skipped when
+started again with the same ``--out``, and ``--summarize`` only reads what is on disk.
+
+    python benchmarks/ablation.py [--variants baseline critic ...] [--tasks pendulum]
+                                  [--seeds 10] [--out DIR] [--json FILE] [--summarize]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import write_json
+from scipy import stats
+
+from pporpe.evaluation import load_evaluation
+from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.reproduce import reproduce
+from pporpe.runs.logger import read_records
+
+AUTHOR: dict[str, dict[str, Any]] = {
+    "critic": {"critic_signal": "actor"},
+    "td_units": {"td_units": "unscaled"},
+    "entropy": {"entropy_density": "pre_squash"},
+    "amsgrad": {"amsgrad_max": "raw", "amsgrad_decay": 0.99999},
+    "layer_norm": {"layer_norm_affine": False},
+    "trace_kl": {"trace_divergence": "analytic"},
+}
+"""Each difference, as the OnlineConfig fields that give the author's choice."""
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "baseline": {},
+    **AUTHOR,
+    "all": {k: v for change in AUTHOR.values() for k, v in change.items()},
+}
+THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
+METHODS = ("ppo", "rb", "rpe")
+
+
+def iqm(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean: the mean of the middle 50% (scipy's trimmed mean, 25% a side)."""
+    return stats.trim_mean(x, 0.25, axis=axis)
+
+
+def with_ci(values: list[float], statistic: Any) -> dict[str, float]:
+    """The statistic and its bootstrap 95% CI (BCa; percentile when BCa is degenerate)."""
+    data = np.asarray(values, dtype=np.float64)
+    point = float(statistic(data, axis=-1))
+    if len(data) < 2 or np.all(data == data[0]):
+        return {"value": point, "low": point, "high": point}
+    rng = np.random.default_rng(0)
+    try:
+        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="BCa", rng=rng)
+    except Exception:  # BCa needs a non-degenerate jackknife
+        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="percentile", rng=rng)
+    ci = res.confidence_interval
+    return {"value": point, "low": float(ci.low), "high": float(ci.high)}
+
+
+def spec_for(variant: str, tasks: list[str], seeds: int, eval_episodes: int, episodes: int) -> Any:
+    return parse_spec(
+        {
+            "name": f"ablation-{variant}",
+            "methods": list(METHODS),
+            "seeds": seeds,
+            "eval_episodes": eval_episodes,
+            "learner": dict(VARIANTS[variant]),
+            "tasks": [{"env": t, "episodes": episodes} for t in tasks],
+        },
+        f"ablation:{variant}",
+    )
+
+
+def summarize(out: Path, variants: list[str], tasks: list[str]) -> list[dict[str, Any]]:
+    rows = []
+    for variant in variants:
+        for task in tasks:
+            for method in METHODS:
+                runs = sorted((out / variant / task / method).glob("seed*"))
+                done = [r for r in runs if (r / "done.json").exists()]
+                if not done:
+                    continue
+                scores = [ev.median for r in done if (ev := load_evaluation(r)) is not None]
+                early = [
+                    float(np.mean([rec.ret for rec in read_records(r / "episodes.csv")[:50]]))
+                    for r in done
+                ]
+                rows.append(
+                    {
+                        "variant": variant,
+                        "task": task,
+                        "method": method,
+                        "seeds": len(done),
+                        "mean": with_ci(scores, np.mean),
+                        "iqm": with_ci(scores, iqm),
+                        "first50_mean_return": with_ci(early, np.mean),
+                        "seeds_reaching": int(sum(s >= THRESHOLD[task] for s in scores)),
+                        "threshold": THRESHOLD[task],
+                        "scores": scores,
+                    }
+                )
+    return rows
+
+
+def fmt(ci: dict[str, float]) -> str:
+    return f"{ci['value']:7.1f} [{ci['low']:7.1f}, {ci['high']:7.1f}]"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--tasks", nargs="+", default=["pendulum", "swingup"])
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--eval-episodes", type=int, default=50)
+    parser.add_argument("--episodes", type=int, default=200, help="training episodes (paper: 200)")
+    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--out", default="results/ablation", help="run folders (large)")
+    parser.add_argument("--json", default="benchmarks/results/ablation.json")
+    parser.add_argument("--summarize", action="store_true", help="only read finished runs")
+    args = parser.parse_args()
+    out = Path(args.out)
+    if not args.summarize:
+        for variant in args.variants:
+            spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
+            print(f"variant {variant}: {VARIANTS[variant] or 'pporpe 0.2 choices'}", flush=True)
+            outcome = reproduce(spec, out / variant, workers=args.workers)
+            print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
+                  f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip
+    rows = summarize(out, args.variants, args.tasks)
+    header = (
+        f"{'variant':11s} {'task':9s} {'method':6s} {'n':>3s} {'mean score [95% CI]':>27s} "
+        f"{'IQM [95% CI]':>27s} {'first-50 mean [95% CI]':>27s} {'>= thr':>7s}"
+    )
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(
+            f"{r['variant']:11s} {r['task']:9s} {r['method']:6s} {r['seeds']:3d} "
+            f"{fmt(r['mean']):>27s} {fmt(r['iqm']):>27s} {fmt(r['first50_mean_return']):>27s} "
+            f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
+        )
+    path = write_json(args.json, {"variants": VARIANTS, "rows": rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,210 @@
+"""The learner choices where pporpe 0.2 and the author's test bed differ (issue: learning
+fidelity): each formula against a float64 reference or a hand-worked case, and the
+defaults unchanged (pporpe 0.2's numbers)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from pporpe.advantages import regularized_advantage
+from pporpe.nn.batched import forward_chain
+from pporpe.nn.policies import NormalHead, StudentTHead
+from pporpe.online.config import OnlineConfig
+from pporpe.online.population import PopulationLearner
+from pporpe.surrogates import surrogate_objective
+
+SMALL = {"layers": 2, "units": 16, "compile": False}
+OBS, ACT = 3, 2
+
+
+def pop(configs: list[OnlineConfig], seeds: list[int]) -> PopulationLearner:
+    return PopulationLearner(OBS, -np.ones(ACT), np.ones(ACT), configs, seeds, compile_update=False)
+
+
+def cfg(**kw: object) -> OnlineConfig:
+    return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
+
+
+def drive(p: PopulationLearner, steps: int, seed: int = 0, forced: bool = True) -> list:
+    """The same transitions (and, with ``forced``, the same actions) for every member."""
+    rng = np.random.default_rng(seed)
+    K = p.K
+    u0 = torch.as_tensor(rng.normal(size=(1, ACT)), dtype=torch.float32).repeat(K, 1)
+    p.begin_episode(range(K), np.zeros((K, OBS)), forced_u=u0 if forced else None)
+    out = []
+    for _ in range(steps):
+        obs = np.repeat(rng.normal(size=(1, OBS)), K, 0)
+        u = torch.as_tensor(rng.normal(size=(1, ACT)), dtype=torch.float32).repeat(K, 1)
+        no = np.zeros(K, dtype=bool)
+        stats, _ = p.step(np.full(K, rng.normal()), obs, no, no, forced_u=u if forced else None)
+        out.append(stats)
+    return out
+
+
+def test_td_units_hand_worked() -> None:
+    delta, logp = (
+        torch.tensor([0.02], dtype=torch.float64),
+        torch.tensor([-1.2], dtype=torch.float64),
+    )
+    scaled = regularized_advantage(delta, logp, 0.01, 0.01, 0.01)
+    unscaled = regularized_advantage(delta, logp, 0.01, 0.01, 0.01, td_scale=1.0 / 0.01)
+    # 0.02 - 0.01 (0.01 * 0.02^2 + 0.01 * -1.2) and 0.02 - 0.01 (0.01 * 2^2 + 0.01 * -1.2)
+    assert float(scaled) == pytest.approx(0.02011996, abs=1e-12)
+    assert float(unscaled) == pytest.approx(0.01972, abs=1e-12)
+
+
+def test_td_units_in_the_learner() -> None:
+    """At the first step both members have the same parameters and delta: A differs by
+    exactly the TD penalty's units, (1 - gamma) beta_TD delta^2 (1/(1-gamma)^2 - 1)."""
+    p = pop([cfg(), cfg(td_units="unscaled")], [0, 0])
+    (s, *_) = drive(p, 1)
+    d = s.delta.double()
+    assert torch.equal(s.delta[0], s.delta[1])
+    expected = 0.01 * 0.01 * d[0] ** 2 * (1.0 / 0.01**2 - 1.0)
+    assert float(s.adv[0] - s.adv[1]) == pytest.approx(float(expected), rel=1e-4, abs=1e-9)
+
+
+def test_entropy_density_in_the_learner() -> None:
+    """The pre-squash density drops the map's Jacobian: A differs by (1 - gamma) beta_DE
+    log|da/du| at the same step."""
+    p = pop([cfg(), cfg(entropy_density="pre_squash")], [0, 0])
+    u = torch.tensor([[0.3, -1.1]])
+    p.begin_episode([0, 1], np.zeros((2, OBS)), forced_u=u.repeat(2, 1))
+    jac = p.action_map.log_abs_det_jacobian(u.double())[0]
+    no = np.zeros(2, dtype=bool)
+    s, _ = p.step(np.zeros(2), np.ones((2, OBS)), no, no, forced_u=u.repeat(2, 1))
+    # A_action = ... - (1-g) b (logp - jac); A_pre = ... - (1-g) b logp
+    expected = -0.01 * 0.01 * float(jac)
+    assert float(s.adv[1] - s.adv[0]) == pytest.approx(expected, rel=1e-4)
+
+
+def student_kl_reference(p: tuple, q: tuple) -> float:
+    """Float64 normal-gamma KL of two diagonal student-t (loc, scale, df), written anew."""
+    (mp, sp, dp), (mq, sq, dq) = p, q
+    total = 0.0
+    for a, b, c, d in zip(mp, sp, mq, sq):
+        v = (b / d) ** 2
+        total += 0.5 * (v + ((a - c) / d) ** 2 - 1.0 - math.log(v))
+    ddf = dq * (math.log(dp) - math.log(dq)) - 2 * (math.lgamma(dp / 2) - math.lgamma(dq / 2))
+    ddf += (dp - dq) * (float(torch.digamma(torch.tensor(dp / 2, dtype=torch.float64))) - 1.0)
+    return total + 0.5 * ddf
+
+
+def raw_student(loc: list[float], scale: list[float], df: float) -> torch.Tensor:
+    inv_sp = [s - 1e-3 + math.log(-math.expm1(-(s - 1e-3))) for s in scale]
+    d = df - 2.0
+    return torch.tensor([*loc, *inv_sp, d + math.log(-math.expm1(-d))], dtype=torch.float64)
+
+
+def test_student_t_kl_against_reference_and_limits() -> None:
+    head = StudentTHead(2)
+    p = ([0.1, -0.4], [0.7, 1.3], 4.0)
+    q = ([-0.2, 0.5], [1.1, 0.6], 9.0)
+    got = float(head.kl(raw_student(*p), raw_student(*q)))
+    assert got == pytest.approx(student_kl_reference(p, q), rel=1e-9)
+    assert float(head.kl(raw_student(*p), raw_student(*p))) == pytest.approx(0.0, abs=1e-12)
+    # large df on both sides: the Gaussian KL
+    big_p, big_q = (p[0], p[1], 1e6), (q[0], q[1], 1e6)
+    gauss = kl_divergence(
+        Normal(torch.tensor(p[0]), torch.tensor(p[1])),
+        Normal(torch.tensor(q[0]), torch.tensor(q[1])),
+    ).sum()
+    assert float(head.kl(raw_student(*big_p), raw_student(*big_q))) == pytest.approx(
+        float(gauss), rel=1e-5
+    )
+
+
+def test_normal_kl_equals_torch() -> None:
+    head = NormalHead(2)
+    raw_p = torch.tensor([0.1, -0.4, 0.3, -0.2], dtype=torch.float64)
+    raw_q = torch.tensor([-0.2, 0.5, -0.7, 0.4], dtype=torch.float64)
+    lp, sp = head.split(raw_p)
+    lq, sq = head.split(raw_q)
+    ref = kl_divergence(Normal(lp, sp), Normal(lq, sq)).sum()
+    assert float(head.kl(raw_p, raw_q)) == pytest.approx(float(ref), rel=1e-12)
+
+
+def test_analytic_trace_divergence_in_the_learner() -> None:
+    """At step 2 the divergence is relu(KL(pi_theta1 || pi_theta0)) at s_1 plus half the
+    squared value change, from the stored baseline and the current parameters."""
+    p = pop([cfg(trace_divergence="analytic", lr=1e-2)], [3])
+    drive(p, 1)
+    raw_b, value_b, obs = p._raw_b.clone(), p._value_b.clone(), p._obs.clone()
+    out, _ = forward_chain(p._flat(2), obs.view(1, 1, OBS).repeat(2, 1, 1), p.lay, "swish")
+    raw_now, v_now = out[0, 0].double(), out[1, 0, 0].double()
+    kl = max(float(p.head.kl(raw_now, raw_b[0].double())), 0.0)
+    expected = kl + 0.5 * float(v_now - value_b[0].double()) ** 2
+    no = np.zeros(1, dtype=bool)
+    s, _ = p.step(np.zeros(1), np.ones((1, OBS)), no, no)
+    assert float(s.divergence[0]) == pytest.approx(expected, rel=1e-4, abs=1e-9)
+    assert expected > 0.0
+
+
+def test_amsgrad_maximum_raw_or_bias_corrected() -> None:
+    """With decay 1 the maximum is the running max of the raw second moment ("raw") or,
+    stored scaled by the bias correction, bc2_t times the running max of v_t / bc2_t."""
+    p = pop([cfg(amsgrad_decay=1.0, amsgrad_max="raw"), cfg(amsgrad_decay=1.0)], [1, 1])
+    beta2 = 0.999
+    rng = np.random.default_rng(5)
+    p.begin_episode([0, 1], np.zeros((2, OBS)))
+    best_raw = best_hat = None
+    no = np.zeros(2, dtype=bool)
+    for t in range(1, 8):
+        p.step(np.full(2, rng.normal()), np.repeat(rng.normal(size=(1, OBS)), 2, 0), no, no)
+        v_raw, v_cor = p.v[:, 0].double(), p.v[:, 1].double()
+        best_raw = v_raw if best_raw is None else torch.maximum(best_raw, v_raw)
+        bc2 = 1 - beta2**t
+        best_hat = v_cor / bc2 if best_hat is None else torch.maximum(best_hat, v_cor / bc2)
+        torch.testing.assert_close(p.vmax_s[:, 0].double(), best_raw, rtol=1e-6, atol=1e-12)
+        torch.testing.assert_close(p.vmax_s[:, 1].double(), bc2 * best_hat, rtol=1e-5, atol=1e-12)
+
+
+def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> None:
+    """With lambda = 0, the value block receives grad[-A rho_dagger V(s_t)] (rho_dagger
+    detached); the TD choice receives grad[delta^2 / 2]-style delta * grad[-V]."""
+    p = pop([cfg(critic_signal="actor", lambdas=(0.0, 0.0), method="ppo", lr=1e-2)], [2])
+    drive(p, 1)
+    obs = p._obs.clone()
+    flat = p.P[1, 0].reshape(1, -1).clone().requires_grad_(True)
+    out, _ = forward_chain(flat, obs.view(1, 1, OBS), p.lay, "swish")
+    v = out[0, 0, 0]
+    (grad_v,) = torch.autograd.grad(v, flat)
+    no = np.zeros(1, dtype=bool)
+    s, _ = p.step(np.zeros(1), np.ones((1, OBS)), no, no)
+    adv = s.adv[:1].double()
+    rho_dagger = float(surrogate_objective("ppo", s.ratio[:1].double(), adv) / adv)
+    assert rho_dagger != 1.0
+    received = s.adv[0] * p.G[1, 0].reshape(-1)
+    expected = -float(s.adv[0]) * rho_dagger * grad_v[0]
+    torch.testing.assert_close(received, expected, rtol=1e-4, atol=1e-7)
+
+
+def test_frozen_layer_norm_keeps_scale_and_shift() -> None:
+    p = pop([cfg(layer_norm_affine=False), cfg()], [4, 4])
+    rows = p.lay.norm_rows
+    before = p.P[:2, :, rows].clone()
+    drive(p, 5)
+    assert torch.equal(p.P[:2, 0, rows], before[:, 0])
+    assert not torch.equal(p.P[:2, 1, rows], before[:, 1])
+    assert torch.all(p.P[:2, 0, rows[0::2]] == 1.0) and torch.all(p.P[:2, 0, rows[1::2]] == 0.0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("td_units", "raw"),
+        ("entropy_density", "bounded"),
+        ("critic_signal", "value"),
+        ("trace_divergence", "exact"),
+        ("amsgrad_max", "max"),
+        ("layer_norm_affine", 1),
+    ],
+)
+def test_bad_choice_is_refused_by_name(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        OnlineConfig(**{field: value})  # type: ignore[arg-type]
