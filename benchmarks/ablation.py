@@ -133,7 +133,11 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--episodes", type=int, default=200, help="training episodes (paper: 200)")
     parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument("--out", default="results/ablation", help="run folders (large)")
+    parser.add_argument(
+        "--out",
+        default="benchmarks/results/ablation",
+        help="run folders (their checkpoints and TensorBoard logs are not committed)",
+    )
     parser.add_argument("--json", default="benchmarks/results/ablation.json")
     parser.add_argument("--summarize", action="store_true", help="only read finished runs")
     args = parser.parse_args()

@@ -1,9 +1,10 @@
 """Run a grid of independent training runs on a local process pool or a Ray cluster.
 
-Each run trains and evaluates into ``OUT/<env>/<method>/seed<k>`` through
-:func:`pporpe.runs.train`, which checkpoints at episode boundaries and resumes. So
-running :func:`reproduce` again with the same arguments after a crash (even SIGKILL)
-skips finished runs and resumes unfinished ones from their last checkpoint.
+Each run trains and evaluates into ``OUT/<env>/<method>/seed<k>`` through the one run
+loop (:func:`pporpe.runs.loop.run_queue`); online runs of one task share a population
+(:func:`plan_jobs`). Runs checkpoint and resume, so running :func:`reproduce` again with
+the same arguments after a crash (even SIGKILL) skips finished runs and resumes
+unfinished ones from their last checkpoint, with the same packing.
 
 Safety against two processes on one run: local workers die with their parent
 (``PR_SET_PDEATHSIG`` on Linux), and every run holds an exclusive lock on
@@ -34,7 +35,7 @@ from ..runs.folder import config_json
 from ..runs.kinds import get_kind, kind_of
 from .grid import GridSpec, RunSpec, spec_summary
 
-__all__ = ["GridOutcome", "Job", "plan_jobs", "reproduce", "run_job", "run_one"]
+__all__ = ["GridOutcome", "Job", "plan_jobs", "reproduce", "run_job"]
 
 BACKENDS = ("local", "ray")
 
@@ -132,11 +133,6 @@ def run_job(
                 atomic_write_text(path / "error.txt", tb)
             failed.append({"run_dir": str(path), "status": "failed", "error": _failure(exc)})
         return failed
-
-
-def run_one(run_dir: str, cfg_dict: dict[str, Any]) -> dict[str, Any]:
-    """Train and evaluate one run (in a worker); never raises, reports the status."""
-    return run_job(run_dir, [(run_dir, cfg_dict)])[0]
 
 
 @dataclass(frozen=True)

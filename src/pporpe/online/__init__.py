@@ -11,7 +11,8 @@ streams :mod:`.noise`); :class:`OnlineLearner` is one member with scalar inputs.
 from .config import OnlineConfig, TrainConfig
 from .learner import OnlineLearner
 from .optim import TDAmsProp
-from .population import PopulationLearner, StepStats
+from .population import PopulationLearner
+from .stats import StepStats
 from .traces import AdaptiveTraces
 from .tsoft import TSoftUpdate
 

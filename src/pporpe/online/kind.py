@@ -23,7 +23,8 @@ from ..runs.kinds import Episode, Progress, register_kind
 from ..surrogates import regularization_amount
 from .config import OnlineConfig, TrainConfig
 from .learner import OnlineLearner
-from .population import PopulationLearner, StepStats
+from .population import PopulationLearner
+from .stats import StepStats
 
 __all__ = ["ONLINE", "OnlineKind", "OnlineTrainer", "episode_diagnostics"]
 

@@ -25,7 +25,8 @@ import numpy as np
 from torch import Tensor
 
 from .config import OnlineConfig
-from .population import PopulationLearner, StepStats
+from .population import PopulationLearner
+from .stats import StepStats
 
 __all__ = ["OnlineLearner", "StepStats"]
 

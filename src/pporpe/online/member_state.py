@@ -11,6 +11,7 @@ member bitwise when the packing (K, slot) is the same, up to rounding otherwise.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -20,7 +21,10 @@ from .config import OnlineConfig
 if TYPE_CHECKING:
     from .population import PopulationLearner
 
-__all__ = ["load_member_state", "member_state"]
+__all__ = ["load_member_state", "member_state", "write_constants"]
+
+SIGMA2_MIN = 1e-12
+"""t-soft ``sigma2`` floor: TSoftUpdate's default."""
 
 
 def member_state(pop: PopulationLearner, k: int) -> dict[str, Any]:
@@ -79,3 +83,49 @@ def load_member_state(
         pop._obs[k], pop._u[k] = pending["obs"], pending["u"]
         pop._logp_b[k], pop._value_b[k] = pending["logp_b"], pending["value_b"]
         pop._raw_b[k] = pending.get("raw_b", torch.zeros(pop.head.raw_dim))
+
+
+def write_constants(pop: PopulationLearner, k: int, cfg: OnlineConfig) -> None:
+    """Write member k's per-member constants from its config (every setting that is not
+    state: reward scale, discount, regularisers and their choices, trace, optimiser and
+    t-soft constants)."""
+    c, c64, b, nps = pop._c, pop._c64, pop._b, pop._np
+    beta1, beta2 = cfg.opt_betas
+    c["reward_scale"][k] = cfg.effective_reward_scale
+    c["gamma"][k] = cfg.gamma
+    c["one_m_gamma"][k] = 1.0 - cfg.gamma
+    c["beta_td"][k] = cfg.beta_td
+    c["beta_de"][k] = cfg.beta_de
+    c["td_scale"][k] = 1.0 if cfg.td_units == "scaled" else 1.0 / (1.0 - cfg.gamma)
+    b["pre_squash"][k] = cfg.entropy_density == "pre_squash"
+    b["critic_actor"][k] = cfg.critic_signal == "actor"
+    b["kl_analytic"][k] = cfg.trace_divergence == "analytic"
+    b["ln_frozen"][k] = pop.lay.layer_norm and not cfg.layer_norm_affine
+    pop._norm_keep[k] = 1.0
+    if b["ln_frozen"][k]:
+        pop._norm_keep[k, pop.lay.norm_rows] = 0.0
+    nps["ams_raw"][k] = float(cfg.amsgrad_max == "raw")
+    c["neg_kappa"][k] = -cfg.kappa
+    b["kappa_pos"][k] = cfg.kappa > 0.0
+    c["gl1"][k] = cfg.gamma * cfg.lambdas[0]
+    c["gl2"][k] = cfg.gamma * cfg.lambdas[1]
+    c["beta2"][k] = beta2
+    c["one_m_beta2"][k] = 1.0 - beta2
+    c["opt_eps"][k] = cfg.opt_eps
+    mom_only = beta1 == 0.0 or math.isinf(cfg.k_dof)
+    b["mom_only"][k] = mom_only
+    c["omb_mom"][k] = 1.0 - beta1
+    c["w_coef"][k] = 0.0 if mom_only else 1.0 - 1.0 / beta1
+    for j in range(2):
+        n = torch.tensor([float(s.real[j]) for s in pop.lay.slots])
+        if mom_only:
+            pop.num[j, k], pop.den[j, k] = 1.0, 0.0
+        else:
+            pop.num[j, k] = n * (1.0 + cfg.k_dof)
+            pop.den[j, k] = n * cfg.k_dof
+    nps["beta1"][k], nps["beta2"][k] = beta1, beta2
+    nps["lr"][k], nps["ams_decay"][k] = cfg.lr, cfg.amsgrad_decay
+    c64["tau"][k] = cfg.tau
+    c64["nu"][k] = cfg.nu
+    c64["sigma2_min"][k] = SIGMA2_MIN
+    b["polyak"][k] = math.isinf(cfg.nu)

@@ -33,9 +33,7 @@ per member; packing (K, slot) changes results only by float rounding.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -48,8 +46,9 @@ from ..nn.mlp import mlp
 from ..nn.policies import ActionMap, PolicyHead, StudentTHead, make_head
 from ..surrogates import surrogate_objective
 from .config import OnlineConfig
-from .member_state import load_member_state, member_state
+from .member_state import load_member_state, member_state, write_constants
 from .noise import NoiseBank, polar_normal, polar_student_t
+from .stats import StepStats
 from .update import (
     opt_scalars,
     trace_scalars,
@@ -64,42 +63,7 @@ SHARED_FIELDS: tuple[str, ...] = ("layers", "units", "layer_norm", "activation",
 """Config fields every member must share (they fix the network shape)."""
 
 SIGMA2_INIT = 1e-2
-SIGMA2_MIN = 1e-12
-"""t-soft ``sigma2`` initial value and floor: TSoftUpdate's defaults, as OnlineLearner uses."""
-
-
-@dataclass(frozen=True)
-class StepStats:
-    """What one step did: ``[K]`` tensors, one entry per member (0-dim for one member).
-
-    No ``.item()`` in the step path; read by name.
-    """
-
-    delta: Tensor
-    """TD error delta (scaled-reward units)."""
-    adv: Tensor
-    """Regularised advantage A used by the surrogate."""
-    ratio: Tensor
-    """Density ratio rho = pi_theta_t / pi_theta_{t-1} of the transition."""
-    divergence: Tensor
-    """KL estimate + squared value change since the last step."""
-    trace_decay: Tensor
-    """Adaptive trace decay exp(-kappa D) after this step."""
-
-    def member(self, k: int) -> StepStats:
-        """Member k's entries (0-dim tensors)."""
-        return StepStats(*(getattr(self, f.name)[k] for f in fields(self)))
-
-    def as_dict(self) -> dict[str, float]:
-        """Python floats by name, for 0-dim stats (synchronises; logging and tests only)."""
-        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
-
-    @staticmethod
-    def stack(steps: list[StepStats]) -> StepStats:
-        """The stats of many steps, each field stacked along a new first dimension."""
-        return StepStats(
-            *(torch.stack([getattr(s, f.name) for s in steps]) for f in fields(StepStats))
-        )
+"""t-soft ``sigma2`` initial value: TSoftUpdate's default."""
 
 
 def _as_index(members: Sequence[int] | Tensor | np.ndarray, k: int) -> np.ndarray:
@@ -247,46 +211,7 @@ class PopulationLearner:
         """Write member k's constants (everything but its state)."""
         self._check_shape(cfg)
         self.configs[k] = cfg
-        c, c64, b, nps = self._c, self._c64, self._b, self._np
-        beta1, beta2 = cfg.opt_betas
-        c["reward_scale"][k] = cfg.effective_reward_scale
-        c["gamma"][k] = cfg.gamma
-        c["one_m_gamma"][k] = 1.0 - cfg.gamma
-        c["beta_td"][k] = cfg.beta_td
-        c["beta_de"][k] = cfg.beta_de
-        c["td_scale"][k] = 1.0 if cfg.td_units == "scaled" else 1.0 / (1.0 - cfg.gamma)
-        b["pre_squash"][k] = cfg.entropy_density == "pre_squash"
-        b["critic_actor"][k] = cfg.critic_signal == "actor"
-        b["kl_analytic"][k] = cfg.trace_divergence == "analytic"
-        b["ln_frozen"][k] = self.lay.layer_norm and not cfg.layer_norm_affine
-        self._norm_keep[k] = 1.0
-        if b["ln_frozen"][k]:
-            self._norm_keep[k, self.lay.norm_rows] = 0.0
-        nps["ams_raw"][k] = float(cfg.amsgrad_max == "raw")
-        c["neg_kappa"][k] = -cfg.kappa
-        b["kappa_pos"][k] = cfg.kappa > 0.0
-        c["gl1"][k] = cfg.gamma * cfg.lambdas[0]
-        c["gl2"][k] = cfg.gamma * cfg.lambdas[1]
-        c["beta2"][k] = beta2
-        c["one_m_beta2"][k] = 1.0 - beta2
-        c["opt_eps"][k] = cfg.opt_eps
-        mom_only = beta1 == 0.0 or math.isinf(cfg.k_dof)
-        b["mom_only"][k] = mom_only
-        c["omb_mom"][k] = 1.0 - beta1
-        c["w_coef"][k] = 0.0 if mom_only else 1.0 - 1.0 / beta1
-        for j in range(2):
-            n = torch.tensor([float(s.real[j]) for s in self.lay.slots])
-            if mom_only:
-                self.num[j, k], self.den[j, k] = 1.0, 0.0
-            else:
-                self.num[j, k] = n * (1.0 + cfg.k_dof)
-                self.den[j, k] = n * cfg.k_dof
-        nps["beta1"][k], nps["beta2"][k] = beta1, beta2
-        nps["lr"][k], nps["ams_decay"][k] = cfg.lr, cfg.amsgrad_decay
-        c64["tau"][k] = cfg.tau
-        c64["nu"][k] = cfg.nu
-        c64["sigma2_min"][k] = SIGMA2_MIN
-        b["polyak"][k] = math.isinf(cfg.nu)
+        write_constants(self, k, cfg)
         groups: dict[tuple[Any, ...], list[int]] = {}
         for i, cf in enumerate(self.configs):
             key = (cf.method, cf.eps, cf.beta, cf.eta, cf.rpe_form)

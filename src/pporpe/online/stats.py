@@ -1,0 +1,44 @@
+"""What one step of the online learner did, per member, read by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+__all__ = ["StepStats"]
+
+
+@dataclass(frozen=True)
+class StepStats:
+    """What one step did: ``[K]`` tensors, one entry per member (0-dim for one member).
+
+    No ``.item()`` in the step path; read by name.
+    """
+
+    delta: Tensor
+    """TD error delta (scaled-reward units)."""
+    adv: Tensor
+    """Regularised advantage A used by the surrogate."""
+    ratio: Tensor
+    """Density ratio rho = pi_theta_t / pi_theta_{t-1} of the transition."""
+    divergence: Tensor
+    """KL estimate + squared value change since the last step."""
+    trace_decay: Tensor
+    """Adaptive trace decay exp(-kappa D) after this step."""
+
+    def member(self, k: int) -> StepStats:
+        """Member k's entries (0-dim tensors)."""
+        return StepStats(*(getattr(self, f.name)[k] for f in fields(self)))
+
+    def as_dict(self) -> dict[str, float]:
+        """Python floats by name, for 0-dim stats (synchronises; logging and tests only)."""
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+    @staticmethod
+    def stack(steps: list[StepStats]) -> StepStats:
+        """The stats of many steps, each field stacked along a new first dimension."""
+        return StepStats(
+            *(torch.stack([getattr(s, f.name) for s in steps]) for f in fields(StepStats))
+        )
