@@ -317,3 +317,14 @@ def test_a_member_that_goes_non_finite_stops_alone(tmp_path: Path) -> None:
     assert all(r.error is None for r in control)
     assert strip_time(control[0].records) == strip_time(results[0].records)
     assert strip_time(control[2].records) == strip_time(results[2].records)
+
+
+def test_cli_out_that_is_a_file_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "FILE"
+    target.write_text("keep me")
+    code = main(["train", "--env", "pendulum", "--episodes", "2", "--out", str(target)])
+    err = capsys.readouterr().err
+    assert code == 2 and "is an existing file" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and target.read_text() == "keep me"

@@ -82,7 +82,12 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
     its default, is the same run as the folder's.
     """
     run = Path(run_dir)
-    run.mkdir(parents=True, exist_ok=True)
+    if run.exists() and not run.is_dir():
+        raise ValueError(f"the run folder {run} is an existing file; choose another --out")
+    try:
+        run.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot create the run folder {run}: {exc.strerror}") from None
     path = run / "config.json"
     if not path.exists():
         atomic_write_json(path, config)
