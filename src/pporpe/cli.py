@@ -88,6 +88,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     # validate everything before any environment is built
     cfg: Any = _CONFIG_FROM_ARGS[args.learner](args)
     resolve_env_id(cfg.env)
+    if args.force:
+        from .runs.folder import clear_run_dir
+
+        clear_run_dir(args.out)
     result = train(cfg, args.out, progress=not args.quiet)
     steps, seconds, episodes = result.total_steps, result.train_time, len(result.records)
     rate = f"{steps / max(seconds, 1e-9):.0f} steps/s"
@@ -263,6 +267,11 @@ def build_parser() -> argparse.ArgumentParser:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="compile the online learner's elementwise update (default: on)",
+    )
+    tr.add_argument(
+        "--force",
+        action="store_true",
+        help="start over: remove a previous run's files from --out first",
     )
     tr.add_argument(
         "--checkpoint-every",

@@ -134,7 +134,9 @@ class OnlineConfig:
         require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
         require(0.0 < self.lr < math.inf, "lr", self.lr, "a finite number > 0")
         require(
-            len(self.opt_betas) == 2 and all(is_real(b) and 0.0 <= b < 1.0 for b in self.opt_betas),
+            isinstance(self.opt_betas, tuple | list)
+            and len(self.opt_betas) == 2
+            and all(is_real(b) and 0.0 <= b < 1.0 for b in self.opt_betas),
             "opt_betas",
             self.opt_betas,
             "two numbers in [0, 1)",
@@ -150,7 +152,9 @@ class OnlineConfig:
         require(0.0 < self.tau <= 1.0, "tau", self.tau, "in (0, 1]")
         require(self.nu > 0.0, "nu", self.nu, "> 0 (inf allowed)")
         require(
-            len(self.lambdas) == 2 and all(is_real(x) and 0.0 <= x <= 1.0 for x in self.lambdas),
+            isinstance(self.lambdas, tuple | list)
+            and len(self.lambdas) == 2
+            and all(is_real(x) and 0.0 <= x <= 1.0 for x in self.lambdas),
             "lambdas",
             self.lambdas,
             "two numbers in [0, 1]",

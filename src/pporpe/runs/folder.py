@@ -28,6 +28,8 @@ from .kinds import LearnerKind, get_kind
 
 __all__ = [
     "CHECKPOINT",
+    "RUN_FILES",
+    "clear_run_dir",
     "config_json",
     "load_checkpoint",
     "open_run_dir",
@@ -63,12 +65,37 @@ def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
         return None
 
 
+def _read_json(path: Path) -> dict[str, Any]:
+    """A run file's JSON object, or a ValueError that names the file and what to do."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(
+            f"{path} cannot be read ({exc}); restore it, or use another --out folder"
+        ) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} does not hold a JSON object; restore it, or use another --out")
+    return data
+
+
+def _differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted names of the settings that differ between two config dictionaries."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += _differences(x, y, f"{prefix}{key}.")
+        elif x != y:
+            out.append(f"{prefix}{key}")
+    return out
+
+
 def read_config(run_dir: str | Path) -> tuple[LearnerKind, Any]:
     """The learner kind and run configuration saved in ``run_dir/config.json``."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder (it has no config.json)")
-    data = _normalized(json.loads(path.read_text()))
+    data = _normalized(_read_json(path))
     kind = get_kind(data.pop("kind"))
     return kind, config_from_dict(kind.config_type, data, str(path))
 
@@ -91,12 +118,37 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
     path = run / "config.json"
     if not path.exists():
         atomic_write_json(path, config)
-    elif (stored := _parsed(json.loads(path.read_text()))) is None or stored != _parsed(config):
-        raise ValueError(
-            f"{run} holds a run with a different config; use another --out folder "
-            "or delete it to start over"
-        )
+    else:
+        saved = _read_json(path)
+        stored = _parsed(saved)
+        if stored is None or stored != _parsed(config):
+            differ = _differences(_normalized(saved), _normalized(config))
+            raise ValueError(
+                f"{run} holds a run with a different config (differing: "
+                f"{', '.join(differ) or 'unreadable settings'}); use another --out folder, "
+                "or --force to start over in it"
+            )
     return run, (run / "done.json").exists()
+
+
+RUN_FILES = ("config.json", CHECKPOINT, "episodes.csv", "evaluation.json", "done.json",
+             "error.txt", "tensorboard")  # fmt: skip
+"""What a run writes into its folder (``--force`` removes these, and nothing else)."""
+
+
+def clear_run_dir(run_dir: str | Path) -> None:
+    """Remove a run's files from its folder, so that a new run can start there."""
+    import shutil
+
+    run = Path(run_dir)
+    if not run.is_dir():
+        return
+    for name in RUN_FILES:
+        target = run / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -106,9 +158,18 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
 
 
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
-    """The checkpoint of a run folder (``ValueError`` if it has none)."""
+    """The checkpoint of a run folder (``ValueError`` if it has none or it is corrupt; the
+    file is left as it is)."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder with a checkpoint ({CHECKPOINT})")
-    state: dict[str, Any] = torch.load(path, weights_only=False)
+    try:
+        state = torch.load(path, weights_only=False)
+    except Exception as exc:  # a torn or foreign file: pickle, zip or EOF errors
+        raise ValueError(
+            f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
+            "it was not changed. Restore it from a copy, or use --force to start the run over"
+        ) from None
+    if not isinstance(state, dict) or "records" not in state:
+        raise ValueError(f"{path} is not a pporpe checkpoint; restore it or use --force")
     return state

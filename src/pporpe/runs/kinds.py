@@ -203,7 +203,7 @@ def register_kind(kind: LearnerKind) -> LearnerKind:
 
 def _load_builtins() -> None:
     for name, module in _BUILTIN.items():
-        if name not in _KINDS:
+        if not isinstance(name, str) or name not in _KINDS:
             importlib.import_module(module)  # the module registers its kind
 
 
@@ -216,7 +216,7 @@ def kinds() -> list[str]:
 def get_kind(name: str) -> LearnerKind:
     """The learner kind of that name; ``ValueError`` listing the known kinds otherwise."""
     _load_builtins()
-    if name not in _KINDS:
+    if not isinstance(name, str) or name not in _KINDS:
         raise ValueError(f"kind must be one of {sorted(_KINDS)}; got kind={name!r}")
     return _KINDS[name]
 

@@ -56,15 +56,22 @@ def records_to_csv(records: list[EpisodeRecord]) -> str:
 
 
 def read_records(path: str | Path) -> list[EpisodeRecord]:
-    """Read a per-episode CSV written by :class:`RunLogger`."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    out = []
-    for row in rows:
-        kw: dict[str, Any] = {}
-        for f in fields(EpisodeRecord):
-            kw[f.name] = int(row[f.name]) if f.type in ("int", int) else float(row[f.name])
-        out.append(EpisodeRecord(**kw))
+    """Read a per-episode CSV written by :class:`RunLogger` (``ValueError`` naming the file
+    if it is missing a column or holds a value that is not a number)."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        out = []
+        for row in rows:
+            kw: dict[str, Any] = {}
+            for f in fields(EpisodeRecord):
+                kw[f.name] = int(row[f.name]) if f.type in ("int", int) else float(row[f.name])
+            out.append(EpisodeRecord(**kw))
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{path} cannot be read as an episodes.csv ({type(exc).__name__}: {exc}); "
+            "a resumed run rewrites it from its checkpoint"
+        ) from None
     return out
 
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import torch
 
-from ..envs import resolve_env_id
+from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read_config
@@ -192,8 +192,9 @@ def run_queue(
     keys = {kind.pack_key(c) for c in cfgs}
     if any(kind_of(c) is not kind for c in cfgs) or len(keys) != 1:
         raise ValueError("run_queue takes runs of one learner kind, task and network shape")
-    for cfg in cfgs:
-        resolve_env_id(cfg.env)  # bad env names fail before anything is built or written
+    for env in dict.fromkeys(cfg.env for cfg in cfgs):
+        # bad names and spaces (e.g. discrete actions) fail before any folder is written
+        make_env(env).close()
     dirs = [Path(d) for _, d in runs]
     results: dict[int, RunResult] = {}
     pending: list[int] = []

@@ -1,0 +1,266 @@
+"""Bad input never leaks a traceback: corrupt run files, the output folder, and
+property-based fuzzing of the configs, grid specs and CLI arguments (hypothesis)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pporpe.batch.config import BatchConfig
+from pporpe.cli import main
+from pporpe.experiments.grid import parse_spec
+from pporpe.online.config import OnlineConfig, TrainConfig
+from pporpe.runs import load_policy, train
+
+FIXTURES = Path(__file__).parent / "fixtures"
+TINY = OnlineConfig(layers=1, units=8, compile=False)
+
+
+def tiny_run(tmp_path: Path, name: str = "run", episodes: int = 4) -> tuple[TrainConfig, Path]:
+    cfg = TrainConfig(episodes=episodes, checkpoint_every=2, eval_episodes=0, learner=TINY)
+    return cfg, tmp_path / name
+
+
+def unfinished(tmp_path: Path) -> tuple[TrainConfig, Path]:
+    """A run stopped after its checkpoint at 2 episodes (of 4)."""
+    cfg, run = tiny_run(tmp_path)
+
+    class Stop(RuntimeError):
+        pass
+
+    def stop(rec: Any) -> None:
+        if rec.episode == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(cfg, run, progress=False, on_episode=stop)
+    return cfg, run
+
+
+# --- corrupt or foreign run files -------------------------------------------------
+def test_truncated_checkpoint_is_refused_and_kept(tmp_path: Path) -> None:
+    cfg, run = unfinished(tmp_path)
+    ckpt = run / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[:100])
+    before = ckpt.read_bytes()
+    with pytest.raises(ValueError, match=r"checkpoint\.pt cannot be read .*not changed.*--force"):
+        train(cfg, run, progress=False)
+    assert ckpt.read_bytes() == before  # the evidence is not overwritten
+
+
+def test_corrupt_config_json_names_the_file(tmp_path: Path) -> None:
+    cfg, run = unfinished(tmp_path)
+    (run / "config.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"config\.json cannot be read"):
+        train(cfg, run, progress=False)
+    with pytest.raises(ValueError, match=r"config\.json cannot be read"):
+        load_policy(run)
+
+
+def test_corrupt_episodes_csv_of_a_finished_run_names_the_file(tmp_path: Path) -> None:
+    run = tmp_path / "old"
+    shutil.copytree(FIXTURES / "run_v0_1_batch", run)
+    (run / "episodes.csv").write_text("episode,ret\n1,abc\n")
+    from pporpe.runs.folder import read_config
+
+    _, cfg = read_config(run)
+    with pytest.raises(ValueError, match=r"episodes\.csv cannot be read as an episodes\.csv"):
+        train(cfg, run, progress=False)
+
+
+def test_corrupt_episodes_csv_of_an_unfinished_run_is_rewritten(tmp_path: Path) -> None:
+    cfg, run = unfinished(tmp_path)
+    (run / "episodes.csv").write_text("garbage")
+    result = train(cfg, run, progress=False)
+    assert [r.episode for r in result.records] == [0, 1, 2, 3]
+
+
+def test_a_different_config_is_refused_naming_the_fields_unless_force(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    base = ["train", "--env", "pendulum", "--episodes", "1", "--eval-episodes", "0",
+            "--no-compile", "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(base) == 0
+    capsys.readouterr()
+    assert main([*base[:-2], "--method", "ppo", "--eps", "0.2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "differing: learner.eps, learner.method" in err and "--force" in err
+    assert json.loads((out / "config.json").read_text())["learner"]["method"] == "rpe"
+    assert main([*base[:-2], "--method", "ppo", "--force", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["learner"]["method"] == "ppo"
+
+
+# --- property-based: configs --------------------------------------------------------
+def values() -> st.SearchStrategy[Any]:
+    """Values of every JSON-ish type, with edge cases."""
+    return st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(min_value=-(10**12), max_value=10**12),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.text(max_size=8),
+        st.lists(st.floats(allow_nan=False, width=32), max_size=3).map(tuple),
+        st.sampled_from(["ppo", "rpe", "student_t", "swish", "derived", "inf", "scaled"]),
+    )
+
+
+def check_config(cls: type, name: str, value: Any, **extra: Any) -> None:
+    """Either the config accepts the value, or a ValueError names the field."""
+    try:
+        cls(**{name: value, **extra})
+    except ValueError as exc:
+        msg = str(exc)
+        assert name in msg or name.split("_")[0] in msg, (name, value, msg)
+        assert "\n" not in msg
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from([f.name for f in fields(OnlineConfig)]), values())
+def test_online_config_accepts_or_names_the_field(name: str, value: Any) -> None:
+    check_config(OnlineConfig, name, value)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from([f.name for f in fields(BatchConfig)]), values())
+def test_batch_config_accepts_or_names_the_field(name: str, value: Any) -> None:
+    check_config(BatchConfig, name, value)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.sampled_from([f.name for f in fields(TrainConfig) if f.name != "learner"]), values())
+def test_train_config_accepts_or_names_the_field(name: str, value: Any) -> None:
+    check_config(TrainConfig, name, value)
+
+
+# --- property-based: grid specs --------------------------------------------------
+GOOD_SPEC: dict[str, Any] = {
+    "name": "fuzz",
+    "methods": ["ppo", "rpe"],
+    "seeds": 2,
+    "eval_episodes": 1,
+    "learner": {"layers": 1, "units": 8},
+    "tasks": [{"env": "pendulum", "episodes": 2}],
+}
+TOP_FIELDS = ["name", "kind", "methods", "seeds", "eval_episodes", "checkpoint_every",
+              "learner", "tasks", "unknown_field"]  # fmt: skip
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.sampled_from(TOP_FIELDS),
+    st.one_of(
+        values(),
+        st.lists(values(), max_size=3),
+        st.dictionaries(st.text(max_size=6), values(), max_size=2),
+    ),
+    st.booleans(),
+)
+def test_a_mutated_spec_parses_or_names_the_field(field: str, value: Any, delete: bool) -> None:
+    spec = json.loads(json.dumps(GOOD_SPEC))
+    if delete:
+        spec.pop(field, None)
+    else:
+        spec[field] = value
+    try:
+        parsed = parse_spec(spec, "fuzz.toml")
+    except ValueError as exc:
+        msg = str(exc)
+        assert msg.startswith("fuzz.toml"), msg
+    else:
+        assert len(parsed.runs) >= 1
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.sampled_from(["env", "episodes", "steps", "learner", "extra"]),
+    st.one_of(
+        values(),
+        st.dictionaries(st.sampled_from(["lr", "eps", "kappa", "x"]), values(), max_size=2),
+    ),
+)
+def test_a_mutated_task_parses_or_names_the_task(field: str, value: Any) -> None:
+    spec = json.loads(json.dumps(GOOD_SPEC))
+    spec["tasks"][0][field] = value
+    try:
+        parse_spec(spec, "fuzz.toml")
+    except ValueError as exc:
+        assert str(exc).startswith("fuzz.toml: tasks[0]"), str(exc)
+
+
+# --- property-based: CLI arguments ------------------------------------------------
+OPTIONS = {
+    "--method": st.sampled_from(["ppo", "rb", "rpe", "trpo", ""]),
+    "--eps": st.sampled_from(["0.1", "0.5", "1.5", "-1", "nan", "x"]),
+    "--beta": st.sampled_from(["0.5", "0.95", "2", "inf"]),
+    "--eta": st.sampled_from(["0.3", "-0.1", "1e9"]),
+    "--gamma": st.sampled_from(["0.99", "1.0", "-0.5"]),
+    "--lr": st.sampled_from(["3e-4", "0", "-1", "inf"]),
+    "--seed": st.sampled_from(["0", "3", "-1", "1.5"]),
+    "--env": st.sampled_from(["pendulum", "NoSuchEnv-v9", "CartPole-v1", "π"]),
+    "--episodes": st.sampled_from(["1", "0", "-3", "two"]),
+    "--eval-episodes": st.sampled_from(["0", "1", "-1"]),
+    "--checkpoint-every": st.sampled_from(["1", "0"]),
+}
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.dictionaries(st.sampled_from(sorted(OPTIONS)), st.just(None), max_size=4).flatmap(
+    lambda chosen: st.fixed_dictionaries({k: OPTIONS[k] for k in chosen})
+))  # fmt: skip
+def test_cli_train_runs_or_fails_in_one_line(
+    tmp_path_factory: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str], options: dict
+) -> None:
+    out = tmp_path_factory.mktemp("cli") / "run"
+    argv = ["train", "--quiet", "--no-compile", "--out", str(out)]
+    for k, v in options.items():
+        argv += [k, v]
+    if "--episodes" not in options:
+        argv += ["--episodes", "1"]
+    if "--eval-episodes" not in options:
+        argv += ["--eval-episodes", "0"]
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse: usage error
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    if code == 0:
+        assert (out / "done.json").exists()
+    else:
+        assert code == 2, (argv, err)
+        assert not out.exists(), argv  # nothing was created
+        assert err.strip() and "error" in err, argv
+        if "usage:" not in err:
+            assert err.count("\n") == 1, err
+
+
+# --- what the fuzzing found, kept as plain regression tests -------------------------
+def test_found_opt_betas_none_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match="opt_betas"):
+        OnlineConfig(opt_betas=None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="lambdas"):
+        OnlineConfig(lambdas=3)  # type: ignore[arg-type]
+
+
+def test_found_a_non_string_kind_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match=r"fuzz\.toml: field 'kind'"):
+        parse_spec({**GOOD_SPEC, "kind": []}, "fuzz.toml")
+
+
+def test_found_a_discrete_task_creates_no_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    code = main(["train", "--env", "CartPole-v1", "--episodes", "1", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "gymnasium.spaces.Box" in err and not out.exists()
