@@ -4,6 +4,7 @@ property-based fuzzing of the configs, grid specs and CLI arguments (hypothesis)
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from dataclasses import fields
 from pathlib import Path
@@ -264,3 +265,104 @@ def test_found_a_discrete_task_creates_no_folder(
     code = main(["train", "--env", "CartPole-v1", "--episodes", "1", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 and "gymnasium.spaces.Box" in err and not out.exists()
+
+
+# --- the other subcommands, the TOML text, the grid's population settings ---------
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.sampled_from(["evaluate", "reproduce", "report", "figures"]),
+    st.lists(
+        st.sampled_from(["--episodes", "0", "-2", "x", "3", "--seed", "--population", "0",
+                         "--checkpoint-seconds", "-1", "nan", "--workers", "--backend", "mars",
+                         "--address", "h:1", "--eps", "2", "--beta", "--eta", "--out",
+                         "NOPE", "π", ""]),
+        max_size=5,
+    ),
+)  # fmt: skip
+def test_other_subcommands_fail_in_one_line(
+    tmp_path_factory: pytest.TempPathFactory,
+    capsys: pytest.CaptureFixture[str],
+    command: str,
+    words: list[str],
+) -> None:
+    where = tmp_path_factory.mktemp("sub")
+    target = str(where / "missing")
+    argv = [command, *([target] if command in ("evaluate", "reproduce", "report") else []), *words]
+    if command in ("reproduce", "figures") and "--out" not in words:
+        argv += ["--out", str(where / "out")]
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    if code != 0:
+        assert code == 2 and "error" in err, (argv, err)
+        if "usage:" not in err:
+            assert err.count("\n") == 1, err
+    if command == "reproduce":
+        assert not (where / "out").exists() and not (where / "NOPE").exists()
+
+
+@settings(
+    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.text(max_size=200))
+def test_any_toml_text_parses_or_fails_naming_the_file(
+    tmp_path_factory: pytest.TempPathFactory, text: str
+) -> None:
+    from pporpe.experiments.grid import load_spec
+
+    path = tmp_path_factory.mktemp("toml") / "spec.toml"
+    path.write_text(text, encoding="utf-8")
+    try:
+        load_spec(path)
+    except ValueError as exc:
+        assert str(exc).startswith(str(path)), str(exc)
+
+
+ODD = st.one_of(
+    st.integers(-3, 3), st.floats(allow_nan=True), st.booleans(), st.none(), st.text(max_size=3)
+)
+
+
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(ODD, ODD, st.one_of(st.integers(-2, 2), st.none(), st.booleans(), st.text(max_size=2)))
+def test_population_settings_are_checked_before_any_work(
+    tmp_path_factory: pytest.TempPathFactory, population: Any, seconds: Any, workers: Any
+) -> None:
+    from pporpe.experiments.reproduce import reproduce
+
+    spec = parse_spec(GOOD_SPEC, "fuzz.toml")
+    out = tmp_path_factory.mktemp("grid") / "out"
+
+    def whole(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    ok_pop = whole(population) and population >= 1
+    ok_sec = isinstance(seconds, int | float) and not isinstance(seconds, bool)
+    ok_sec = ok_sec and 0 <= seconds < math.inf
+    ok_workers = workers is None or (whole(workers) and workers >= 1)
+    if ok_pop and ok_sec and ok_workers:
+        return  # valid: would start work
+    with pytest.raises(ValueError, match=r"population|checkpoint_seconds|workers"):
+        reproduce(spec, out, population=population, checkpoint_seconds=seconds, workers=workers)
+    assert not out.exists()
+
+
+def test_an_unwritable_out_folder_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import os
+
+    if os.geteuid() == 0:
+        pytest.skip("running as root: permissions do not stop writes, so this cannot be made")
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    code = main(["train", "--episodes", "1", "--out", str(locked / "run")])
+    err = capsys.readouterr().err
+    assert code == 2 and "cannot create the run folder" in err and "Traceback" not in err

@@ -303,13 +303,19 @@ def reproduce(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}; got {backend!r}")
-    if workers is not None and not (isinstance(workers, int) and workers >= 1):
+    if workers is not None and not (
+        isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1
+    ):
         raise ValueError(f"workers must be an int >= 1; got {workers!r}")
     if address is not None and backend != "ray":
         raise ValueError("--address is only for --backend ray")
     if not (isinstance(population, int) and not isinstance(population, bool) and population >= 1):
         raise ValueError(f"population must be an int >= 1; got population={population!r}")
-    if not (isinstance(checkpoint_seconds, int | float) and checkpoint_seconds >= 0):
+    if not (
+        isinstance(checkpoint_seconds, int | float)
+        and not isinstance(checkpoint_seconds, bool)
+        and 0 <= checkpoint_seconds < float("inf")
+    ):
         raise ValueError(
             "checkpoint_seconds must be a number >= 0; "
             f"got checkpoint_seconds={checkpoint_seconds!r}"
