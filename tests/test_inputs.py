@@ -366,3 +366,39 @@ def test_an_unwritable_out_folder_is_a_one_line_error(
     code = main(["train", "--episodes", "1", "--out", str(locked / "run")])
     err = capsys.readouterr().err
     assert code == 2 and "cannot create the run folder" in err and "Traceback" not in err
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Any:
+    """A 256 KiB tmpfs (needs root and mount); skipped with the reason where unavailable."""
+    import subprocess
+
+    where = tmp_path / "disk"
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {done.stderr.strip() or done.returncode}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", str(where)], check=False)
+
+
+def test_a_full_disk_is_a_one_line_error(
+    small_disk: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A checkpoint (megabytes at the paper's network size) does not fit: the run stops with
+    one line naming the file, and no partial checkpoint is left behind."""
+    out = small_disk / "run"
+    code = main(["train", "--episodes", "3", "--checkpoint-every", "1", "--eval-episodes", "0",
+                 "--no-compile", "--quiet", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "No space left on device" in err and "Traceback" not in err, err
+    assert err.count("\n") == 1
+    assert (out / "config.json").exists() and not (out / "checkpoint.pt").exists()
+    assert not list(out.glob(".*.tmp"))

@@ -152,9 +152,15 @@ def clear_run_dir(run_dir: str | Path) -> None:
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write a checkpoint atomically (``torch.save`` to a temporary file, then rename)."""
+    """Write a checkpoint atomically (to a temporary file, then rename). The state is
+    serialised in memory first, so a full disk raises ``OSError`` (torch.save would turn it
+    into an unspecific RuntimeError) and the previous checkpoint stays."""
+    import io
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
     with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+        tmp.write_bytes(buf.getbuffer())
 
 
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
