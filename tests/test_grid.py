@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -280,17 +281,20 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
     out = tmp_path / "out"
     proc = _launch(spec_path, out, *args)
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:  # until a run has a checkpoint with 8+ episodes
+    while time.monotonic() < deadline:  # until a run has a checkpoint with 4+ episodes
         done = [r for r in spec.runs if (out / r.key / "done.json").exists()]
-        csvs = [len(read_records(c)) for c in out.glob("pendulum/*/seed*/episodes.csv")]
-        if done or (csvs and max(csvs) >= 8):
+        csvs = []
+        for c in out.glob("pendulum/*/seed*/episodes.csv"):
+            with contextlib.suppress(ValueError):  # a CSV being replaced
+                csvs.append(len(read_records(c)))
+        if done or (csvs and max(csvs) >= 4):
             break
-        time.sleep(0.05)
+        time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     time.sleep(0.5)
     unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
-    assert len(unfinished) >= 2, "the kill came too late to test resuming"
+    assert unfinished, "the kill came too late to test resuming"
     proc = _launch(spec_path, out, *args)
     assert proc.wait(timeout=300) == 0
     for run in spec.runs:

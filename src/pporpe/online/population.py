@@ -216,7 +216,12 @@ class PopulationLearner:
         for i, cf in enumerate(self.configs):
             key = (cf.method, cf.eps, cf.beta, cf.eta, cf.rpe_form)
             groups.setdefault(key, []).append(i)
-        self._groups = [(key, torch.tensor(ix)) for key, ix in groups.items()]
+        masks = []
+        for key, ix in groups.items():
+            mask = torch.zeros(self.K, dtype=torch.bool)
+            mask[ix] = True
+            masks.append((key, mask))
+        self._groups = masks
 
     def reset_member(self, k: int, config: OnlineConfig, seed: int) -> None:
         """(Re)initialise slot k as a fresh run of ``config`` and ``seed``.
@@ -348,17 +353,22 @@ class PopulationLearner:
 
     # -- learning -------------------------------------------------------------------------
     def _head_grad(self, raw0: Tensor, ratio: Tensor, sigma: Tensor) -> tuple[Tensor, Tensor]:
-        """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)``, one surrogate call per group,
-        and the surrogates' effective ratios rho_dagger = sigma obj(rho, sigma) (detached)."""
-        loss = ratio.new_zeros(())
-        rho_dagger = torch.empty_like(ratio)
-        for (method, eps, beta, eta, form), ix in self._groups:
-            rho, sig = (ratio, sigma) if len(self._groups) == 1 else (ratio[ix], sigma[ix])
-            obj = surrogate_objective(method, rho, sig, eps, beta, eta, form)
-            loss = loss + (-sig * obj).sum()
-            rho_dagger[ix] = (sig * obj).detach()
-        (grad,) = torch.autograd.grad(loss, raw0)
-        return grad, rho_dagger
+        """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)`` and the surrogates' effective
+        ratios rho_dagger = sigma obj(rho, sigma) (detached).
+
+        Each distinct surrogate setting is evaluated on all K members and selected by
+        mask, so a member's numbers never depend on which settings the other slots hold.
+        """
+        if len(self._groups) == 1:
+            (method, eps, beta, eta, form), _ = self._groups[0]
+            obj = surrogate_objective(method, ratio, sigma, eps, beta, eta, form)
+        else:
+            obj = torch.zeros_like(ratio)
+            for (method, eps, beta, eta, form), mask in self._groups:
+                value = surrogate_objective(method, ratio, sigma, eps, beta, eta, form)
+                obj = torch.where(mask, value, obj)
+        (grad,) = torch.autograd.grad((-sigma * obj).sum(), raw0)
+        return grad, (sigma * obj).detach()
 
     def step(
         self,

@@ -176,6 +176,6 @@ def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
             f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
             "it was not changed. Restore it from a copy, or use --force to start the run over"
         ) from None
-    if not isinstance(state, dict) or "records" not in state:
+    if not isinstance(state, dict) or not ("records" in state or "members" in state):
         raise ValueError(f"{path} is not a pporpe checkpoint; restore it or use --force")
     return state

@@ -14,9 +14,12 @@ to K slots (K = 1 for a single run; the online learner trains K runs in lockstep
    (``evaluation.json``), then ``done.json``; the slot takes the next run of the queue.
 
 A run that fails alone (a non-finite value) leaves its message in ``error.txt`` and the
-others go on. With several slots, the loop also keeps ``population.json`` in a home
-folder: which run is in which slot and what is still queued, so that a restarted queue
-resumes with the same packing and produces the same numbers as an uninterrupted one.
+others go on. With several slots, the loop keeps the population's checkpoint in a home folder: every
+member's state at one step together with the packing (which run is in which slot, what is
+still queued), in one atomic file, and ``population.json`` as a readable copy of the
+packing. A restarted queue resumes with the same packing at the same step and produces the
+same numbers as an uninterrupted one; each run's own ``checkpoint.pt`` is written when it
+finishes.
 When the queue is empty and at most half the slots are busy, the trainer is compacted to
 the busy runs (idle slots of a population would still cost compute). A killed run loses
 at most the work since its last checkpoint; records never have a gap or a duplicate.
@@ -147,7 +150,8 @@ class _Run:
                 self.bar.set_postfix(ep=len(self.records) - 1, ret=f"{self.records[-1].ret:.1f}")
         return new
 
-    def checkpoint(self, trainer: Trainer, slot: int) -> None:
+    def state(self, trainer: Trainer, slot: int) -> dict[str, Any]:
+        """The run's checkpoint content (after a finiteness check)."""
         if not trainer.parameters_finite(slot):
             steps = trainer.counters(slot)["total_steps"]
             raise NonFiniteError(
@@ -157,7 +161,11 @@ class _Run:
         state = trainer.state(slot)
         state["records"] = [r.__dict__ for r in self.records]
         state["wall_time"] = self.train_time()
-        save_checkpoint(self.run / CHECKPOINT, state)
+        return state
+
+    def checkpoint(self, trainer: Trainer, slot: int) -> None:
+        """Write the run's own checkpoint and records."""
+        save_checkpoint(self.run / CHECKPOINT, self.state(trainer, slot))
         self.logger.write_records(self.records)
 
     def close(self) -> None:
@@ -187,6 +195,8 @@ def run_queue(
     """
     if not runs:
         return []
+    if capacity > 1 and home is None:
+        raise ValueError("run_queue needs a home folder for population.json when capacity > 1")
     cfgs = [cfg for cfg, _ in runs]
     kind = kind_of(cfgs[0])
     keys = {kind.pack_key(c) for c in cfgs}
@@ -206,39 +216,63 @@ def run_queue(
             pending.append(i)
     if not pending:
         return [results[i] for i in range(len(runs))]
-    capacity = max(1, min(capacity, len(pending)))
     pop_file = Path(home) / POPULATION_FILE if home is not None and capacity > 1 else None
-    if capacity > 1 and pop_file is None:
-        raise ValueError("run_queue needs a home folder for population.json when capacity > 1")
+    capacity = max(1, min(capacity, len(pending)))
 
     torch.set_num_threads(1)
     queue: deque[int] = deque(pending)
     slots: list[int | None] = [None] * capacity
-    if pop_file is not None and pop_file.is_file():
-        saved = json.loads(pop_file.read_text())
+    # a population's checkpoint: every member at one step, with the packing, in one file
+    pop_ckpt = pop_file.with_name(CHECKPOINT) if pop_file is not None else None
+    members: dict[str, dict[str, Any]] = {}
+    if pop_ckpt is not None and pop_ckpt.is_file():
+        saved = load_checkpoint(pop_ckpt.parent)
         if saved.get("runs") == [str(d) for d in dirs]:  # the same job: the same packing
             by_dir = {str(d): i for i, d in enumerate(dirs)}
             slots = [by_dir.get(d) if d else None for d in saved["slots"]]
             slots = [i if i in pending else None for i in slots]
             queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
             capacity = len(slots)
+            members = saved["members"]
     trainer = kind.make_trainer(cfgs[pending[0]], capacity)
     books: dict[int, _Run] = {}
 
+    def packing() -> dict[str, Any]:
+        return {
+            "runs": [str(d) for d in dirs],
+            "slots": [str(dirs[i]) if i is not None else None for i in slots],
+            "queue": [str(dirs[i]) for i in queue],
+        }
+
     def write_population() -> None:
         if pop_file is not None:
-            atomic_write_json(
-                pop_file,
-                {
-                    "runs": [str(d) for d in dirs],
-                    "slots": [str(dirs[i]) if i is not None else None for i in slots],
-                    "queue": [str(dirs[i]) for i in queue],
-                },
-            )
+            atomic_write_json(pop_file, packing())  # a readable mirror of the packing
+
+    def checkpoint_all() -> None:
+        """Every busy run's checkpoint: in its folder (one run), or all of them in the
+        population's one file (so that they are always from the same step)."""
+        if pop_ckpt is None:
+            for slot, book in list(books.items()):
+                try:
+                    book.checkpoint(trainer, slot)
+                except NonFiniteError as exc:
+                    fail(slot, str(exc))
+            return
+        states = {}
+        for slot, book in list(books.items()):
+            try:
+                states[str(book.run)] = book.state(trainer, slot)
+            except NonFiniteError as exc:
+                fail(slot, str(exc))
+        save_checkpoint(pop_ckpt, {**packing(), "members": states})
+        for book in books.values():
+            book.logger.write_records(book.records)
 
     def begin(slot: int, i: int) -> None:
         run = dirs[i]
-        state = load_checkpoint(run) if (run / CHECKPOINT).exists() else None
+        state = members.pop(str(run), None)
+        if state is None and (run / CHECKPOINT).exists():
+            state = load_checkpoint(run)
         book = _Run(kind, cfgs[i], run, bar=progress and capacity == 1)
         trainer.start(slot, cfgs[i], state)
         book.resume(state, trainer, slot)
@@ -255,6 +289,10 @@ def run_queue(
         i, book = slots[slot], books.pop(slot)
         assert i is not None
         atomic_write_text(book.run / "error.txt", message + "\n")
+        if pop_ckpt is not None and pop_ckpt.is_file():  # its last good state, in its folder
+            last = load_checkpoint(pop_ckpt.parent)["members"].get(str(book.run))
+            if last is not None:
+                save_checkpoint(book.run / CHECKPOINT, last)
         book.close()
         results[i] = RunResult(
             book.run, book.records, None, book.resumed_from, error=message, chunks=0
@@ -337,14 +375,13 @@ def run_queue(
                 books.update(moved)
                 slots[:] = [slots[slot] for slot in busy]
                 changed = True
-                # checkpoint in the new layout: a resumed queue then continues bitwise
+            if changed and pop_file is not None and books:
+                # the packing changed (a run ended, its slot was refilled, the trainer shrank):
+                # checkpoint every run at this step, so that a resumed queue continues with
+                # the same packing at the same step, bit for bit
                 due, last_checkpoint = True, -math.inf
             if due and time.perf_counter() - last_checkpoint >= checkpoint_seconds:
-                for slot, book in list(books.items()):
-                    try:
-                        book.checkpoint(trainer, slot)
-                    except NonFiniteError as exc:
-                        fail(slot, str(exc))
+                checkpoint_all()
                 last_checkpoint = time.perf_counter()
                 changed = True
             if changed:
