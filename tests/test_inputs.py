@@ -402,3 +402,30 @@ def test_a_full_disk_is_a_one_line_error(
     assert err.count("\n") == 1
     assert (out / "config.json").exists() and not (out / "checkpoint.pt").exists()
     assert not list(out.glob(".*.tmp"))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([f.name for f in fields(OnlineConfig)]), values())
+def test_an_accepted_online_config_takes_a_few_steps(name: str, value: Any) -> None:
+    """Whatever OnlineConfig accepts, the learner runs with it: a few steps, no exception
+    (non-finite numbers are the run loop's to report)."""
+    import numpy as np
+
+    from pporpe.online.population import PopulationLearner
+
+    try:
+        cfg = OnlineConfig(**{"layers": 1, "units": 4, "compile": False, name: value})
+    except ValueError:
+        return
+    if cfg.layers > 3 or cfg.units > 64:
+        return  # accepted, but too big to run in a unit test
+    pop = PopulationLearner(3, -np.ones(2), np.ones(2), [cfg], [0], compile_update=False)
+    pop.begin_episode([0], np.zeros((1, 3)))
+    no = np.zeros(1, dtype=bool)
+    for t in range(3):
+        pop.step(np.ones(1), np.full((1, 3), 0.1 * t), no, np.array([t == 2]))
+
+
+def test_found_layer_norm_none_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match="layer_norm"):
+        OnlineConfig(layer_norm=None)  # type: ignore[arg-type]

@@ -111,6 +111,7 @@ def validate_network_fields(cfg: Any) -> None:
         cfg.activation in ACTIVATIONS, "activation", cfg.activation, f"one of {list(ACTIVATIONS)}"
     )
     require(cfg.policy in POLICY_KINDS, "policy", cfg.policy, f"one of {list(POLICY_KINDS)}")
+    require(isinstance(cfg.layer_norm, bool), "layer_norm", cfg.layer_norm, "True or False")
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
