@@ -73,6 +73,9 @@ def with_ci(values: list[float], statistic: Any) -> dict[str, float]:
     except Exception:  # BCa needs a non-degenerate jackknife
         res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="percentile", rng=rng)
     ci = res.confidence_interval
+    if not (np.isfinite(ci.low) and np.isfinite(ci.high)):  # BCa degenerate (e.g. ties)
+        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="percentile", rng=rng)
+        ci = res.confidence_interval
     return {"value": point, "low": float(ci.low), "high": float(ci.high)}
 
 

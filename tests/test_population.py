@@ -121,8 +121,9 @@ def test_member_equals_reference_online_learner() -> None:
     # how far the parameters moved from their initial values, for scale
     total = float((p.member_theta(1) - pop([member], [5]).member_theta(0)).abs().max())
     print(
-        f"\nmax abs drift vs the scalar reference: step 1 {drift[0]:.2e}, step 100 {drift[99]:.2e}, "
-        f"step 300 {drift[-1]:.2e}, max {max(drift):.2e}; parameter change {total:.2e}"
+        f"\nmax abs drift vs the scalar reference: step 1 {drift[0]:.2e}, "
+        f"step 100 {drift[99]:.2e}, step 300 {drift[-1]:.2e}, max {max(drift):.2e}; "
+        f"parameter change {total:.2e}"
     )
     assert max(drift) < 1e-3 * max(total, 1e-3)
     tgt = float((p.member_target(1) - ref.target).abs().max())
