@@ -393,3 +393,18 @@ def test_grid_of_batch_runs(tmp_path: Path) -> None:
         parse_spec({**base, "kind": "nope", "tasks": [{"env": "pendulum", "steps": 64}]})
     result = train_batch(cfgs[1], tmp_path / "rpe", progress=False)
     assert result.updates == 2 and result.total_steps == 128
+
+
+def test_unfinished_version_0_1_batch_folder_resumes(tmp_path: Path) -> None:
+    """A 0.1.0 batch folder without done.json continues from its checkpoint (its last
+    update) to the same records and test returns."""
+    run = tmp_path / "old"
+    shutil.copytree(FIXTURES / "run_v0_1_batch", run)
+    (run / "done.json").unlink()
+    (run / "evaluation.json").unlink()
+    _, cfg = read_config(run)
+    result = train(cfg, run, progress=False)
+    assert result.resumed_from == 2 and result.chunks == 2
+    assert_same_records(result.records, BEHAVIOUR["batch"]["records"])
+    assert result.evaluation is not None
+    assert result.evaluation.returns == BEHAVIOUR["batch"]["eval_returns"]

@@ -345,6 +345,14 @@ def run_queue(
                 fill(slot)
         write_population()
         while books:
+            # a run resumed with its budget spent (stopped after its last checkpoint, e.g.
+            # during evaluation) is completed without another unit of work
+            spent = [slot for slot in books if trainer.finished(slot)]
+            if spent:
+                for slot in spent:
+                    finish(slot)
+                write_population()
+                continue
             reports = trainer.advance()
             due = False
             for slot, report in reports.items():
