@@ -129,7 +129,7 @@ class BatchConfig:
     """How u becomes an action in [low, high]. ``"clip"`` (default) clips u, as
     Stable-Baselines3 does: the zoo's tuned settings (log_std_init, learning rates) assume
     that unit-slope map, and it makes the comparison with SB3 exact. ``"map"`` uses the
-    paper's :class:`~pporpe.policies.ActionMap` (low + (high-low)*sigmoid(u)). Ratios use
+    paper's :class:`~pporpe.nn.policies.ActionMap` (low + (high-low)*sigmoid(u)). Ratios use
     the density of u in both cases."""
     layers: int = 2
     """Hidden layers of each network (policy and value), >= 1."""

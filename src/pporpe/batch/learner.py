@@ -14,29 +14,31 @@ One update (``k``-th of ``n_updates``)::
     compute_gae()        GAE(lambda); bootstrap through truncations, not terminations
     train()              n_epochs x minibatches of batch_size: surrogate + value + entropy
 
-Pieces, each usable alone:
+Pieces, each usable alone (the package :mod:`pporpe.batch`):
 
-* :class:`BatchConfig`       the frozen, validated settings; :data:`ZOO_DEFAULTS` and
-  :func:`zoo_config` give per-task defaults from rl-baselines3-zoo;
-* :class:`RunningMeanStd`, :class:`Normalizer`   observation and reward normalisation;
-* :class:`ActorCritic`       policy and value networks in one flat parameter vector;
-* :class:`RolloutBuffer`, :func:`compute_gae`    storage and advantages;
-* :class:`BatchLearner`      acting (:meth:`~BatchLearner.collect_rollouts`), learning
-  (:meth:`~BatchLearner.train`, returning :class:`UpdateStats`) and the deterministic
-  test-time policy (:meth:`~BatchLearner.act_deterministic`);
-* :func:`evaluate_learner`  test episodes through :func:`pporpe.evaluation.evaluate_policy`;
-* :func:`train_batch`       a whole run with the run-folder layout of
-  :func:`pporpe.runner.train` (config.json, episodes.csv, tensorboard/, checkpoint.pt,
-  evaluation.json, done.json) and exact resume.
+* :class:`~pporpe.batch.config.BatchConfig`  the frozen, validated settings;
+  :data:`~pporpe.batch.config.ZOO_DEFAULTS` and :func:`~pporpe.batch.config.zoo_config`
+  give per-task defaults from rl-baselines3-zoo;
+* :mod:`pporpe.batch.normalize`  observation and reward normalisation;
+* :class:`~pporpe.batch.model.ActorCritic`  policy and value networks in one flat vector;
+* :class:`~pporpe.batch.buffer.RolloutBuffer`, :func:`pporpe.advantages.compute_gae`
+  storage and advantages; :func:`pporpe.batch.loss.minibatch_loss` the loss;
+* :class:`BatchLearner` (this module)  acting (:meth:`~BatchLearner.collect_rollouts`),
+  learning (:meth:`~BatchLearner.train`, returning :class:`UpdateStats`) and the
+  deterministic test-time policy (:meth:`~BatchLearner.act_deterministic`);
+* :func:`pporpe.batch.kind.train_batch`  a whole run through the one run loop
+  (:func:`pporpe.runs.train`: config.json, episodes.csv, tensorboard/, checkpoint.pt,
+  evaluation.json, done.json) with exact resume.
 
 **Autoreset.** Gymnasium 1.x vector environments default to ``NEXT_STEP`` autoreset: the
 step *after* an episode's end only resets that sub-environment, ignores its action and
-returns reward 0, so a rollout would hold one dummy transition per finished episode.
-This module builds its vector environments with ``autoreset_mode=SAME_STEP`` instead:
-the step that ends an episode returns the first observation of the next one, and the
-true last observation is in ``info["final_obs"]`` (mask ``info["_final_obs"]``). Every
-stored transition is then real, and a truncated episode is bootstrapped with
-``V(final_obs)``. :class:`BatchLearner` checks the mode and refuses any other.
+returns reward 0, so a rollout would hold one dummy transition per finished episode. The
+learner builds its vector environments (:mod:`pporpe.batch.vecenv`) with
+``autoreset_mode=SAME_STEP`` instead: the step that ends an episode returns the first
+observation of the next one, and the true last observation is in ``info["final_obs"]``
+(mask ``info["_final_obs"]``). Every stored transition is then real, and a truncated
+episode is bootstrapped with ``V(final_obs)``. :class:`BatchLearner` checks the mode and
+refuses any other.
 
 **Termination and truncation** stay separate everywhere: ``terminated`` (a true end of
 the task) stops bootstrapping; ``truncated`` (a time limit) bootstraps with the value of
