@@ -1,6 +1,7 @@
 # pporpe: two commands on a fresh machine.
 #   make reproduce   the main job: the quick grid + report (installs into .venv first)
-#   make test        lint, type-check and the test suite (installs what it needs first)
+#   make test        lint, type-check and the test suite (installs what it needs first,
+#                    with the optional extras it tests: Ray, Stable-Baselines3, video)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
 
 PYTHON ?= python3
@@ -18,7 +19,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.installed-dev: $(VENV)/.installed
-	$(PIP) --quiet -e ".[dev,ray]"
+	$(PIP) --quiet -e ".[dev,ray,sb3,video]"
 	touch $@
 
 install: $(VENV)/.installed

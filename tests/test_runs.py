@@ -7,6 +7,7 @@ import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -136,8 +137,8 @@ def test_unfinished_version_0_1_online_folder_is_refused_with_a_reason(tmp_path:
         train(fixture_config("online"), run, progress=False)
     after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
     assert after == before
-    _, act = load_policy(run)
-    assert act(np.zeros(5, np.float32)).shape == (1,)
+    policy = load_policy(run)
+    assert policy.kind == "online" and policy.act(np.zeros(5, np.float32)).shape == (1,)
 
 
 def test_legacy_and_current_config_json_are_the_same_run(tmp_path: Path) -> None:
@@ -239,7 +240,7 @@ class CountKind:
         return cfg.env
 
     def load_policy(self, cfg: CountConfig, state: dict[str, Any]) -> Any:
-        return lambda obs: np.zeros(1)
+        return SimpleNamespace(config=cfg, act=lambda obs: np.zeros(1))
 
     def grid_config(self, env, method, seed, budget, common, learner, where):  # type: ignore[no-untyped-def]
         return CountConfig(env=env, seed=seed, episodes=budget["episodes"], **common)
@@ -279,8 +280,8 @@ def test_a_registered_kind_trains_resumes_and_runs_in_a_grid(tmp_path: Path) -> 
     assert [r.config for r in spec.runs] == [
         CountConfig(seed=s, episodes=4, checkpoint_every=10, eval_episodes=50) for s in (0, 1)
     ]
-    cfg, act = load_policy(tmp_path / "full")
-    assert cfg == CountConfig(seed=7) and act(None).shape == (1,)
+    policy = load_policy(tmp_path / "full")
+    assert policy.config == CountConfig(seed=7) and policy.act(None).shape == (1,)
 
 
 def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -> None:
@@ -408,3 +409,24 @@ def test_unfinished_version_0_1_batch_folder_resumes(tmp_path: Path) -> None:
     assert_same_records(result.records, BEHAVIOUR["batch"]["records"])
     assert result.evaluation is not None
     assert result.evaluation.returns == BEHAVIOUR["batch"]["eval_returns"]
+
+
+def test_grid_summary_keeps_the_runs_of_earlier_chunks(tmp_path: Path) -> None:
+    """A grid run in chunks into one folder lists every chunk's runs in grid.json."""
+    from pporpe.experiments.reproduce import merged_grid_summary
+    from pporpe.io import atomic_write_json
+
+    register_kind(CountKind())
+    base = {"kind": "count", "methods": ["ppo"]}
+    first = parse_spec({**base, "seeds": 2, "tasks": [{"env": "pendulum", "episodes": 4}]})
+    second = parse_spec({**base, "seeds": [1, 2], "tasks": [{"env": "pendulum", "episodes": 5}]})
+    path = tmp_path / "grid.json"
+    atomic_write_json(path, merged_grid_summary(path, first))
+    merged = merged_grid_summary(path, second)
+    keys = [r["key"] for r in merged["runs"]]
+    assert keys == ["pendulum/ppo/seed0", "pendulum/ppo/seed1", "pendulum/ppo/seed2"]
+    episodes = {r["key"]: r["config"]["episodes"] for r in merged["runs"]}
+    assert episodes == {"pendulum/ppo/seed0": 4, "pendulum/ppo/seed1": 5, "pendulum/ppo/seed2": 5}
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match=r"grid\.json: not a grid summary written by pporpe"):
+        merged_grid_summary(path, second)

@@ -34,6 +34,7 @@ from .surrogates import (
 if TYPE_CHECKING:
     from .batch import BatchConfig, BatchLearner, train_batch, zoo_config
     from .online import OnlineConfig, OnlineLearner, TrainConfig
+    from .policy import Policy
     from .runs import RunResult, load_policy, train
 
 __version__ = "0.2.0"
@@ -46,6 +47,7 @@ _LAZY = {
     "BatchLearner": "pporpe.batch",
     "train_batch": "pporpe.batch",
     "zoo_config": "pporpe.batch",
+    "Policy": "pporpe.policy",
     "RunResult": "pporpe.runs",
     "load_policy": "pporpe.runs",
     "train": "pporpe.runs",
@@ -65,6 +67,7 @@ __all__ = [
     "Method",
     "OnlineConfig",
     "OnlineLearner",
+    "Policy",
     "Regularization",
     "RunResult",
     "TrainConfig",

@@ -124,17 +124,38 @@ def _print_eval(ev: object) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .evaluation import EVAL_SEED_OFFSET, evaluate_policy
+    from .evaluation import EVAL_SEED_OFFSET, check_video_support, evaluate_policy
     from .io import atomic_write_json
     from .runs.loop import load_policy
 
-    cfg, act = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
+    if args.video is not None:
+        if args.video_episodes > args.episodes:
+            raise ValueError(
+                f"--video-episodes must be in [1, --episodes={args.episodes}]; "
+                f"got {args.video_episodes}"
+            )
+        check_video_support()  # before any work
+        if Path(args.video).exists() and not Path(args.video).is_dir():
+            raise ValueError(f"--video must be a folder; {args.video} is a file")
+    policy = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
+    cfg = policy.config
     seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
-    ev = evaluate_policy(act, cfg.env, args.episodes, seed)
+    ev = evaluate_policy(
+        policy,
+        cfg.env,
+        args.episodes,
+        seed,
+        video_dir=args.video,
+        video_episodes=args.video_episodes,
+    )
     out = Path(args.run_dir) / "evaluation.json"
     atomic_write_json(out, {**ev.to_dict(), "seed": seed})
     _print_eval(ev)
     print(f"saved {out}")
+    if args.video is not None:
+        videos = sorted(Path(args.video).glob("*.mp4"))
+        names = ", ".join(v.name for v in videos)
+        print(f"recorded {len(videos)} video(s) in {args.video}: {names}")
     return 0
 
 
@@ -315,6 +336,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="environment seed (default: training seed + 1000003)",
     )
+    ev.add_argument(
+        "--video",
+        metavar="DIR",
+        default=None,
+        help='record test episodes as MP4 into DIR (needs pip install "pporpe[video]")',
+    )
+    ev.add_argument(
+        "--video-episodes",
+        type=_positive_int,
+        default=1,
+        help="with --video: how many of the first test episodes to record (default 1)",
+    )
     ev.set_defaults(func=_cmd_evaluate)
 
     rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
@@ -365,7 +398,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except ValueError as exc:
+    except (ValueError, ImportError) as exc:  # ImportError: an optional extra is missing
         print(f"pporpe {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a full disk, a vanished folder: the files written so far stay

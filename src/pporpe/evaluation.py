@@ -19,6 +19,7 @@ from .envs import make_env
 __all__ = [
     "EVAL_SEED_OFFSET",
     "EvalResult",
+    "check_video_support",
     "evaluate_policy",
     "load_evaluation",
     "summarize_returns",
@@ -81,27 +82,64 @@ def load_evaluation(run_dir: str | Path) -> EvalResult | None:
 
 
 def evaluate_policy(
-    act: Callable[[np.ndarray], np.ndarray], env_name: str, episodes: int, seed: int
+    act: Callable[[np.ndarray], np.ndarray],
+    env_name: str,
+    episodes: int,
+    seed: int,
+    video_dir: str | Path | None = None,
+    video_episodes: int = 1,
 ) -> EvalResult:
     """Run ``episodes`` test episodes with the deterministic policy ``act``.
 
     The environment is seeded once with ``seed`` (callers pass the training seed plus
     :data:`EVAL_SEED_OFFSET`) and each episode runs until termination or truncation.
+
+    With ``video_dir``, the first ``video_episodes`` test episodes are also recorded there
+    as MP4 files (``rl-video-episode-<i>.mp4``, one frame per step plus the reset frame)
+    through Gymnasium's ``RecordVideo``, rendering with ``render_mode="rgb_array"``
+    (headless for the PyBullet tasks); the returns are the same as without it. Needs
+    moviepy (``pip install "pporpe[video]"``).
     """
     if not (isinstance(episodes, int) and episodes >= 1):
         raise ValueError(f"episodes must be an int >= 1; got episodes={episodes!r}")
-    env = make_env(env_name, seed=seed)
+    if video_dir is not None:
+        if not (isinstance(video_episodes, int) and 1 <= video_episodes <= episodes):
+            raise ValueError(
+                f"video_episodes must be an int in [1, episodes={episodes}]; got {video_episodes!r}"
+            )
+        check_video_support()
+    env = make_env(env_name, seed=seed, render_mode="rgb_array" if video_dir else None)
+    if video_dir is not None:
+        from gymnasium.wrappers import RecordVideo
+
+        env = RecordVideo(
+            env,
+            str(video_dir),
+            episode_trigger=lambda i: i < video_episodes,
+            disable_logger=True,
+        )
     returns: list[float] = []
     try:
         obs, _ = env.reset(seed=seed)
-        for _ in range(episodes):
+        for i in range(episodes):
             total, done = 0.0, False
             while not done:
                 obs, reward, terminated, truncated, _ = env.step(act(obs))
                 total += float(reward)
                 done = terminated or truncated
             returns.append(total)
-            obs, _ = env.reset()
+            if i + 1 < episodes:
+                obs, _ = env.reset()
     finally:
         env.close()
     return summarize_returns(returns)
+
+
+def check_video_support() -> None:
+    """Raise ImportError, saying what to install, when video recording is unavailable."""
+    import importlib.util
+
+    if importlib.util.find_spec("moviepy") is None:
+        raise ImportError(
+            'recording video needs moviepy: pip install "pporpe[video]" (or pip install moviepy)'
+        )

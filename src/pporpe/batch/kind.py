@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy
+from ..policy import Policy
 from ..runs.folder import load_checkpoint, read_config
 from ..runs.kinds import Episode, NonFiniteError, Progress, Trainer, register_kind
 from ..runs.loop import RunResult, train
@@ -171,11 +172,20 @@ class BatchKind:
         """Batch runs do not share a trainer: every run is its own key."""
         return id(cfg)
 
-    def load_policy(self, cfg: BatchConfig, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
-        """The deterministic policy of a checkpoint."""
+    def load_policy(self, cfg: BatchConfig, state: dict[str, Any]) -> Policy:
+        """The trained policy of a checkpoint, with its frozen observation statistics."""
         learner = _policy_learner(cfg, state)
         learner.close()  # acting needs no environment
-        return learner.act_deterministic
+        model, normalizer = learner.model, learner.normalizer
+        return Policy(
+            raw=model.raw,
+            head=model.head,
+            to_action=model.to_action,
+            obs_dim=model.obs_dim,
+            normalize=lambda obs: normalizer.obs(obs, update=False),
+            config=cfg,
+            kind=self.name,
+        )
 
     def grid_config(
         self,

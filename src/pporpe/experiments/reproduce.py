@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 import signal
 import sys
@@ -285,6 +286,26 @@ def _run_ray(
             ray.shutdown()
 
 
+def merged_grid_summary(path: Path, spec: GridSpec) -> dict[str, Any]:
+    """``spec``'s summary, keeping the runs of an earlier ``grid.json`` at ``path``.
+
+    Grids run in chunks (one task, or a block of seeds, at a time) into one folder then
+    report together: a run of an earlier spec stays listed, in its place, and a run of
+    this spec replaces its entry (a changed configuration of the same run is refused by
+    the run folder itself).
+    """
+    summary = spec_summary(spec)
+    if not path.exists():
+        return summary
+    try:
+        old = json.loads(path.read_text())
+        old_runs = {r["key"]: r for r in old["runs"]}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a grid summary written by pporpe ({exc})") from None
+    old_runs.update({r["key"]: r for r in summary["runs"]})
+    return {**summary, "runs": list(old_runs.values())}
+
+
 def reproduce(
     spec: GridSpec,
     out: str | Path,
@@ -322,7 +343,7 @@ def reproduce(
         )
     out_dir = Path(out).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out_dir / "grid.json", spec_summary(spec))
+    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", spec))
 
     t0 = time.perf_counter()
     skipped: list[str] = []

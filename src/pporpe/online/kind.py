@@ -19,6 +19,7 @@ import torch
 
 from ..config import config_from_dict
 from ..envs import ReplayableEnv, env_spec_summary, make_env
+from ..policy import Policy
 from ..runs.kinds import Episode, Progress, register_kind
 from ..surrogates import regularization_amount
 from .config import OnlineConfig, TrainConfig
@@ -291,15 +292,23 @@ class OnlineKind:
         lc = cfg.learner
         return (cfg.env, lc.layers, lc.units, lc.layer_norm, lc.activation, lc.policy, lc.compile)
 
-    def load_policy(self, cfg: TrainConfig, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
-        """The deterministic policy of a checkpoint (also of pporpe 0.1.0's)."""
+    def load_policy(self, cfg: TrainConfig, state: dict[str, Any]) -> Policy:
+        """The trained policy of a checkpoint (also of pporpe 0.1.0's)."""
         learner = _single_learner(cfg)
         member = state["learner"]
         if "params" in member:
             learner.population.load_member_state(0, learner.config, member)
         else:  # 0.1.0: a flat theta in the same order as member_theta
             learner.population.set_member_theta(0, member["theta"])
-        return learner.act_deterministic
+        pop = learner.population
+        return Policy(
+            raw=lambda x: pop.policy_raw(0, x),
+            head=pop.head,
+            to_action=pop.action_map.to_action,
+            obs_dim=pop.obs_dim,
+            config=cfg,
+            kind=self.name,
+        )
 
     def grid_config(
         self,

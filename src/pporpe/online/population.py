@@ -307,6 +307,13 @@ class PopulationLearner:
         return self.action_map.to_action(self.head.location(raw[:, 0])).numpy()
 
     @torch.no_grad()
+    def policy_raw(self, k: int, x: Tensor) -> Tensor:
+        """Member ``k``'s policy output ``[N, raw_dim]`` for observations ``[N, obs_dim]``."""
+        flat = self.P[0, k].view(1, self.lay.n_pad)
+        raw, _ = forward_chain(flat, x.reshape(1, -1, self.obs_dim), self.lay, self.activation)
+        return raw[0]
+
+    @torch.no_grad()
     def value(self, obs: np.ndarray) -> np.ndarray:
         """V(s) of every member's online value network, ``[K]``."""
         x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)

@@ -16,9 +16,12 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..policy import Policy
 
 __all__ = [
     "Episode",
@@ -165,8 +168,9 @@ class LearnerKind(Protocol):
         """Runs with equal keys can share a trainer (same task and network shape)."""
         ...
 
-    def load_policy(self, cfg: Any, state: dict[str, Any]) -> Callable[[Any], np.ndarray]:
-        """The deterministic policy of a checkpoint ``state``, as ``act(obs) -> action``."""
+    def load_policy(self, cfg: Any, state: dict[str, Any]) -> Policy:
+        """The trained policy of a checkpoint ``state`` (a :class:`pporpe.policy.Policy`:
+        ``act(obs, deterministic=True)``, and ``policy(obs)`` for the test-time action)."""
         ...
 
     def grid_config(

@@ -41,6 +41,7 @@ import torch
 from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
+from ..policy import Policy
 from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read_config
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
@@ -422,9 +423,19 @@ def train(
     return result
 
 
-def load_policy(run_dir: str | Path) -> tuple[Any, Callable[[Any], Any]]:
-    """The run configuration and deterministic policy (``act(obs) -> action``) of a run
-    folder, from its ``config.json`` and latest checkpoint; works for every learner kind
-    and for folders written by pporpe 0.1.0."""
+def load_policy(run_dir: str | Path) -> Policy:
+    """The trained policy of a run folder, from its ``config.json`` and latest checkpoint.
+
+    Works for every learner kind (the online learner, batch PPO with its observation
+    normalisation) and for folders written by pporpe 0.1.0. The result acts with
+    ``policy.act(obs, deterministic=True)`` (or ``policy(obs)``) and carries the run's
+    configuration as ``policy.config``::
+
+        policy = pporpe.load_policy("runs/x")
+        action = policy.act(obs)
+
+    Raises:
+        ValueError: not a run folder, or a corrupt config or checkpoint.
+    """
     kind, cfg = read_config(run_dir)
-    return cfg, kind.load_policy(cfg, load_checkpoint(run_dir))
+    return kind.load_policy(cfg, load_checkpoint(run_dir))

@@ -1,0 +1,154 @@
+"""pporpe.sb3.PPO: Stable-Baselines3's PPO with pporpe's surrogates (issue 12)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import stable_baselines3 as sb3
+import torch
+
+from pporpe.sb3 import PPO, zoo_kwargs, zoo_model
+
+ENV = "Pendulum-v1"
+SMALL: dict[str, Any] = {
+    "n_steps": 128,
+    "batch_size": 32,
+    "n_epochs": 4,
+    "learning_rate": 3e-3,  # large enough that some ratios pass the threshold
+    "clip_range": 0.05,
+    "seed": 0,
+    "device": "cpu",
+}
+UPDATES = 3
+
+
+def trained(cls: Any, **kw: Any) -> Any:
+    torch.set_num_threads(1)
+    model = cls("MlpPolicy", ENV, **{**SMALL, **kw})
+    model.learn(UPDATES * SMALL["n_steps"])
+    return model
+
+
+def params(model: Any) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in model.policy.parameters()])
+
+
+@pytest.fixture(scope="module")
+def reference() -> Any:
+    return trained(sb3.PPO)
+
+
+def test_ppo_trains_bit_identically_to_stable_baselines3(reference: Any) -> None:
+    ours = trained(PPO, surrogate="ppo")
+    assert torch.equal(params(ours), params(reference))
+    for key in ("train/value_loss", "train/policy_gradient_loss", "train/entropy_loss",
+                "train/clip_fraction", "train/approx_kl", "train/loss"):  # fmt: skip
+        assert ours.logger.name_to_value[key] == pytest.approx(
+            reference.logger.name_to_value[key], rel=1e-6, abs=1e-12
+        ), key
+    assert ours.logger.name_to_value["train/n_updates"] == UPDATES * SMALL["n_epochs"]
+
+
+def test_rb_with_eta_zero_is_ppo(reference: Any) -> None:
+    assert torch.equal(params(trained(PPO, surrogate="rb", eta=0.0)), params(reference))
+
+
+def test_rb_and_rpe_change_the_parameters(reference: Any) -> None:
+    rb, rpe = trained(PPO, surrogate="rb", eta=0.3), trained(PPO, surrogate="rpe")
+    start = params(PPO("MlpPolicy", ENV, **SMALL))
+    ref = params(reference)
+    assert torch.equal(params(PPO("MlpPolicy", ENV, **{**SMALL, "seed": 0})), start)
+    for model in (rb, rpe):
+        p = params(model)
+        assert not torch.equal(p, ref) and not torch.equal(p, start)
+    assert not torch.equal(params(rb), params(rpe))
+    logged = rpe.logger.name_to_value
+    assert logged["train/rpe_divergence"] > 0.0
+    assert logged["train/regularization"] > 0.0  # PPO-RPE regularises every rho != 1
+    assert 0.0 <= logged["train/past_threshold_fraction"] <= 1.0
+
+
+def test_rpe_policy_loss_matches_a_float64_reference() -> None:
+    """The policy loss of one minibatch against the formula of eq. (11), written here."""
+    model = trained(PPO, surrogate="rpe", rpe_beta=0.4)
+    data = next(model.rollout_buffer.get(64))
+    eps, beta = 0.05, 0.4
+    _, metrics = model._minibatch(data, eps, None)
+    with torch.no_grad():
+        _, logp, _ = model.policy.evaluate_actions(data.observations, data.actions)
+    adv = data.advantages.double()
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    rho = torch.exp(logp.double() - data.old_log_prob.double())
+    sigma = torch.where(adv >= 0, 1.0, -1.0).double()
+    gain = adv.abs() / (eps * (2 * (1 - beta) - beta * sigma * eps))
+    mix = 1 - beta + beta * rho
+    expected = -(rho * adv - gain * mix * (rho / mix - 1) ** 2).mean()
+    assert float(metrics["policy_gradient_loss"]) == pytest.approx(float(expected), rel=1e-4)
+
+
+def test_save_and_load_keep_the_surrogate(tmp_path: Path) -> None:
+    model = trained(PPO, surrogate="rpe", rpe_beta=0.3)
+    model.save(tmp_path / "m")
+    loaded = PPO.load(tmp_path / "m", device="cpu")
+    assert (loaded.surrogate, loaded.rpe_beta) == ("rpe", 0.3)
+    obs = np.linspace(-1, 1, 3 * 5, dtype=np.float32).reshape(5, 3)
+    a, _ = model.predict(obs, deterministic=True)
+    b, _ = loaded.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(a, b)
+    loaded.set_env(model.get_env())
+    loaded.learn(SMALL["n_steps"], reset_num_timesteps=False)  # training goes on
+    assert not torch.equal(params(loaded), params(model))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"surrogate": "clip"}, r"`surrogate` must be one of 'ppo', 'rb', 'rpe'; got 'clip'"),
+        ({"surrogate": "rb", "eta": -0.1}, r"`eta` must be a finite number >= 0"),
+        ({"eta": float("inf")}, r"`eta`"),
+        ({"rpe_beta": 1.5}, r"`rpe_beta` must be a number in \[0, 1\]; got 1.5"),
+        ({"clip_range": 1.2}, r"`clip_range` \(the paper's eps\) must be in \(0, 1\)"),
+        ({"surrogate": "rpe", "rpe_beta": 0.95, "clip_range": 0.1}, r"rpe_beta must be < 0.909"),
+    ],
+)
+def test_bad_arguments_are_refused_before_any_work(kwargs: dict[str, Any], match: str) -> None:
+    with pytest.raises(ValueError, match=match):  # the env does not exist: nothing was built
+        PPO("MlpPolicy", "NoSuchEnv-v0", **kwargs)
+
+
+def test_rl_zoo3_entries() -> None:
+    entry = {
+        "n_envs": 2,
+        "n_timesteps": 256.0,  # rl-zoo3 writes !!float 1e5
+        "policy": "MlpPolicy",
+        "normalize": True,
+        "n_steps": 64,
+        "batch_size": 64,
+        "n_epochs": 2,
+        "clip_range": "lin_0.2",  # reaches 0 at the last update: floored at 1e-8
+        "learning_rate": "lin_1e-3",
+        "policy_kwargs": "dict(net_arch=[16, 16], activation_fn=nn.Tanh)",
+        "surrogate": "rpe",
+    }
+    kwargs, experiment = zoo_kwargs(entry)
+    assert experiment == {
+        "n_envs": 2,
+        "n_timesteps": 256.0,
+        "normalize": True,
+        "policy": "MlpPolicy",
+    }
+    assert kwargs["clip_range"](0.5) == pytest.approx(0.1)
+    assert kwargs["policy_kwargs"] == {"net_arch": [16, 16], "activation_fn": torch.nn.Tanh}
+    model, steps = zoo_model(ENV, entry, seed=0, rpe_beta=0.4)
+    assert steps == 256 and model.surrogate == "rpe" and model.rpe_beta == 0.4
+    model.learn(steps)
+    assert model.logger.name_to_value["train/clip_range"] == 0.0
+    assert model.policy.mlp_extractor.policy_net[0].out_features == 16
+    assert np.isfinite(params(model).numpy()).all()
+    with pytest.raises(ValueError, match=r"`clip_range`: a schedule is 'lin_<number>'"):
+        zoo_kwargs({"clip_range": "lin_x"})
+    with pytest.raises(ValueError, match=r"`n_envs` must be an int >= 1"):
+        zoo_model(ENV, {"n_envs": 0})
