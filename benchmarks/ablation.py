@@ -30,11 +30,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
-from scipy import stats
 
 from pporpe.evaluation import load_evaluation
 from pporpe.experiments.grid import parse_spec
 from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.stats import bootstrap_ci, iqm
 from pporpe.runs.logger import read_records
 
 AUTHOR: dict[str, dict[str, Any]] = {
@@ -56,27 +56,9 @@ THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 METHODS = ("ppo", "rb", "rpe")
 
 
-def iqm(x: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Interquartile mean: the mean of the middle 50% (scipy's trimmed mean, 25% a side)."""
-    return stats.trim_mean(x, 0.25, axis=axis)
-
-
 def with_ci(values: list[float], statistic: Any) -> dict[str, float]:
-    """The statistic and its bootstrap 95% CI (BCa; percentile when BCa is degenerate)."""
-    data = np.asarray(values, dtype=np.float64)
-    point = float(statistic(data, axis=-1))
-    if len(data) < 2 or np.all(data == data[0]):
-        return {"value": point, "low": point, "high": point}
-    rng = np.random.default_rng(0)
-    try:
-        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="BCa", rng=rng)
-    except Exception:  # BCa needs a non-degenerate jackknife
-        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="percentile", rng=rng)
-    ci = res.confidence_interval
-    if not (np.isfinite(ci.low) and np.isfinite(ci.high)):  # BCa degenerate (e.g. ties)
-        res = stats.bootstrap((data,), statistic, n_resamples=10_000, method="percentile", rng=rng)
-        ci = res.confidence_interval
-    return {"value": point, "low": float(ci.low), "high": float(ci.high)}
+    """The statistic and its bootstrap 95% CI (pporpe.experiments.stats: scipy's BCa)."""
+    return bootstrap_ci(values, statistic).as_dict()
 
 
 def spec_for(variant: str, tasks: list[str], seeds: int, eval_episodes: int, episodes: int) -> Any:

@@ -162,7 +162,7 @@ def test_local_backend_runs_grid_and_report(tmp_path: Path) -> None:
         for s in (0, 1)
     ]
     mean, lo, hi = mean_ci(scores)
-    assert f"| pendulum | PPO | {mean:.1f} |" in table
+    assert f"| pendulum | PPO | 2 | {mean:.1f} [" in table  # seeds, then mean [bootstrap CI]
     assert lo <= mean <= hi
 
 

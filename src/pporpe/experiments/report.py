@@ -2,8 +2,14 @@
 
 Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``; writes
 
-* ``summary.md`` / ``summary.csv``: per task and method, the mean and 95% confidence
-  interval (Student t) over seeds of the per-seed median test score, and the seed count;
+* ``REPORT.md``: what ran, the tables below, and each claim of the paper (final score,
+  early learning on the pendulum tasks, strength of regularisation) against the data, as
+  a probability of improvement with its CI and a verdict; a hand-written ``notes.md`` in
+  the folder goes at its top;
+* ``summary.md`` / ``summary.csv``: per task and method, over seeds of the per-seed
+  median test score: the mean and the IQM with bootstrap 95% CIs (:mod:`.stats`; the CSV
+  also has the Student-t interval), the mean return of the first 50 training episodes, the
+  mean regularisation amount; then P(PPO-RPE > rival) for each of them;
 * ``fig_summary``: bar summary of the scores (the paper's Fig. 3, ``sim_summary``);
 * ``fig_learning``: learning curves per task, mean over seeds, 95% bands (Fig. 4, ``sim_learn``);
 * ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);
@@ -32,8 +38,24 @@ from scipy import stats
 from ..io import atomic_savefig, atomic_write_text
 from ..runs.logger import EpisodeRecord, read_records
 from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
+from .stats import (
+    N_RESAMPLES,
+    Estimate,
+    bootstrap_ci,
+    iqm,
+    probability_of_improvement_ci,
+)
 
-__all__ = ["Cell", "load_results", "mean_ci", "write_report"]
+__all__ = [
+    "EARLY_EPISODES",
+    "Cell",
+    "early_return",
+    "improvement_rows",
+    "load_results",
+    "mean_ci",
+    "mean_regularization",
+    "write_report",
+]
 
 
 @dataclass
@@ -85,21 +107,55 @@ def load_results(out: str | Path) -> list[Cell]:
     return list(cells.values())
 
 
+EARLY_EPISODES = 50
+"""Training episodes of the early-learning comparison (the paper's pendulum claim)."""
+
+
+def early_return(records: list[EpisodeRecord], episodes: int = EARLY_EPISODES) -> float:
+    """Mean return of a run's first ``episodes`` training episodes (NaN without any)."""
+    rets = [r.ret for r in records[:episodes]]
+    return float(np.mean(rets)) if rets else math.nan
+
+
+def mean_regularization(records: list[EpisodeRecord]) -> float:
+    """Mean over a run's training episodes of sigma*(rho - rho_dagger) (NaN without any)."""
+    vals = [r.reg_amount for r in records if math.isfinite(r.reg_amount)]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def _finite(values: list[float]) -> list[float]:
+    return [v for v in values if math.isfinite(v)]
+
+
+def _estimate(values: list[float], statistic: Any = np.mean) -> Estimate | None:
+    vals = _finite(values)
+    return bootstrap_ci(vals, statistic) if vals else None
+
+
 def _table_rows(cells: list[Cell]) -> list[dict[str, Any]]:
     rows = []
     for c in cells:
-        mean, lo, hi = mean_ci(list(c.scores.values()))
-        rows.append(
-            {
-                "task": c.env,
-                "method": METHOD_LABELS.get(c.method, c.method),
-                "mean_score": mean,
-                "ci95_low": lo,
-                "ci95_high": hi,
-                "seeds": len(c.scores),
-                "missing": len(c.missing),
-            }
-        )
+        scores = list(c.scores.values())
+        mean, lo, hi = mean_ci(scores)
+        row: dict[str, Any] = {
+            "task": c.env,
+            "method": METHOD_LABELS.get(c.method, c.method),
+            "mean_score": mean,
+            "ci95_low": lo,
+            "ci95_high": hi,
+            "seeds": len(c.scores),
+            "missing": len(c.missing),
+        }
+        stats_of = {
+            "boot": _estimate(scores),
+            "iqm": _estimate(scores, iqm),
+            "first50": _estimate([early_return(r) for r in c.curves.values()]),
+            "reg": _estimate([mean_regularization(r) for r in c.curves.values()]),
+        }
+        for name, est in stats_of.items():
+            for part in ("value", "low", "high"):
+                row[f"{name}_{part}"] = math.nan if est is None else getattr(est, part)
+        rows.append(row)
     return rows
 
 
@@ -107,23 +163,87 @@ def _fmt(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.1f}"
 
 
+def _fmt_ci(row: dict[str, Any], name: str, digits: int = 1) -> str:
+    v, lo, hi = (row[f"{name}_{p}"] for p in ("value", "low", "high"))
+    if math.isnan(v):
+        return "n/a"
+    return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]:
+    """Per task and rival method: P(``of`` > rival) of the scores, of the early returns and
+    of the regularisation amount, each with its bootstrap CI."""
+    rows = []
+    for env in _envs(cells):
+        here = {c.method: c for c in cells if c.env == env}
+        if of not in here:
+            continue
+        mine = here[of]
+        for rival, theirs in here.items():
+            if rival == of:
+                continue
+            row: dict[str, Any] = {"task": env, "method": of, "rival": rival}
+            pairs = {
+                "score": (list(mine.scores.values()), list(theirs.scores.values())),
+                "first50": (
+                    [early_return(r) for r in mine.curves.values()],
+                    [early_return(r) for r in theirs.curves.values()],
+                ),
+                "reg": (
+                    [mean_regularization(r) for r in mine.curves.values()],
+                    [mean_regularization(r) for r in theirs.curves.values()],
+                ),
+            }
+            for name, (x, y) in pairs.items():
+                x, y = _finite(x), _finite(y)
+                est = probability_of_improvement_ci(x, y) if x and y else None
+                for part in ("value", "low", "high"):
+                    row[f"{name}_{part}"] = math.nan if est is None else getattr(est, part)
+                row[f"{name}_n"] = (len(x), len(y))
+            rows.append(row)
+    return rows
+
+
 def summary_markdown(cells: list[Cell]) -> str:
-    """The summary table as Markdown."""
+    """The summary tables as Markdown: scores, early learning and regularisation per task
+    and method, then the probabilities of improvement of PPO-RPE over each rival."""
     lines = [
-        "| task | method | score (mean over seeds) | 95% CI | seeds | missing |",
-        "| --- | --- | ---: | :---: | ---: | ---: |",
+        "| task | method | seeds | mean score [95% CI] | IQM [95% CI] "
+        f"| first-{EARLY_EPISODES} episodes mean return [95% CI] "
+        "| mean regularisation [95% CI] | missing |",
+        "| --- | --- | ---: | :---: | :---: | :---: | :---: | ---: |",
     ]
     for r in _table_rows(cells):
-        ci = f"[{_fmt(r['ci95_low'])}, {_fmt(r['ci95_high'])}]"
         lines.append(
-            f"| {r['task']} | {r['method']} | {_fmt(r['mean_score'])} | {ci} | "
-            f"{r['seeds']} | {r['missing']} |"
+            f"| {r['task']} | {r['method']} | {r['seeds']} | {_fmt_ci(r, 'boot')} | "
+            f"{_fmt_ci(r, 'iqm')} | {_fmt_ci(r, 'first50')} | {_fmt_ci(r, 'reg', 3)} | "
+            f"{r['missing']} |"
         )
-    note = (
-        "\nScore of a run: median return of its test episodes. Mean and 95% confidence "
-        "interval (Student t) over seeds.\n"
+    lines.append(
+        "\nScore of a run: median return of its test episodes. Mean and IQM (interquartile "
+        "mean) over seeds; first-episodes return and regularisation (sigma*(rho - "
+        "rho_dagger), averaged over the run's training episodes) are means over seeds. "
+        f"95% CIs: bootstrap over seeds (scipy BCa, {N_RESAMPLES:,} resamples).\n"
     )
-    return "\n".join(lines) + "\n" + note
+    poi = improvement_rows(cells)
+    if poi:
+        lines += [
+            "| task | P(PPO-RPE > rival) | score [95% CI] "
+            f"| first-{EARLY_EPISODES} return [95% CI] | regularisation [95% CI] |",
+            "| --- | --- | :---: | :---: | :---: |",
+        ]
+        for r in poi:
+            lines.append(
+                f"| {r['task']} | vs {METHOD_LABELS.get(r['rival'], r['rival'])} | "
+                f"{_fmt_ci(r, 'score', 2)} | {_fmt_ci(r, 'first50', 2)} | "
+                f"{_fmt_ci(r, 'reg', 2)} |"
+            )
+        lines.append(
+            "\nProbability of improvement (Agarwal et al. 2021): P(X > Y) + P(X = Y)/2 for a "
+            "random seed of PPO-RPE against a random seed of the rival; 0.5 means neither is "
+            "ahead. CIs: bootstrap resampling both methods' seeds.\n"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def summary_csv(cells: list[Cell]) -> str:
@@ -223,6 +343,95 @@ def _summary_figure(cells: list[Cell]) -> Any:
     return fig
 
 
+CLAIMS = (
+    ("score", "final performance: PPO-RPE scores as well as or better than", None),
+    (
+        "first50",
+        "early learning: PPO-RPE learns faster from the early stage than",
+        ("pendulum", "swingup"),
+    ),
+    ("reg", "regularisation: PPO-RPE regularises more strongly than", None),
+)
+"""The paper's claims checked by the report: the statistic, the claim, the tasks it is
+made for (None: all)."""
+
+
+def verdict(low: float, high: float, n: tuple[int, int]) -> str:
+    """What a probability-of-improvement CI says: ahead, behind, or cannot tell."""
+    if math.isnan(low):
+        return "no data"
+    if low > 0.5:
+        return "supported (PPO-RPE ahead)"
+    if high < 0.5:
+        return "contradicted (PPO-RPE behind)"
+    return f"cannot tell at {min(n)} seeds (the CI contains 0.5)"
+
+
+def claims_markdown(cells: list[Cell]) -> str:
+    """One line per claim, task and rival: the probability of improvement and the verdict."""
+    rows = improvement_rows(cells)
+    lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] | verdict |",
+             "| --- | --- | --- | :---: | --- |"]  # fmt: skip
+    for stat, claim, tasks in CLAIMS:
+        for r in rows:
+            if tasks is not None and r["task"] not in tasks:
+                continue
+            lines.append(
+                f"| {claim.split(':')[0]} | {r['task']} | "
+                f"{METHOD_LABELS.get(r['rival'], r['rival'])} | {_fmt_ci(r, stat, 2)} | "
+                f"{verdict(r[f'{stat}_low'], r[f'{stat}_high'], r[f'{stat}_n'])} |"
+            )
+    legend = "\n".join(
+        f"- **{c.split(':')[0]}**:{c.split(':', 1)[1]} the rival"
+        + ("" if tasks is None else f" (claimed for {', '.join(tasks)})")
+        for _, c, tasks in CLAIMS
+    )
+    return "\n".join(lines) + "\n\n" + legend + "\n"
+
+
+def _budget_lines(root: Path, cells: list[Cell]) -> list[str]:
+    grid = json.loads((root / "grid.json").read_text())
+    lines = []
+    for env in _envs(cells):
+        runs = [r for r in grid["runs"] if r["env"] == env]
+        budgets = sorted({r["config"].get("episodes") or r["config"].get("steps") for r in runs})
+        unit = "episodes" if runs and runs[0]["config"].get("episodes") else "steps"
+        here = [c for c in cells if c.env == env]
+        done = sum(len(c.curves) for c in here)
+        lengths = [len(recs) for c in here for recs in c.curves.values()]
+        ran = f"; episodes run per finished run: {min(lengths)}-{max(lengths)}" if lengths else ""
+        lines.append(
+            f"- {env}: {', '.join(map(str, budgets))} training {unit} per run, "
+            f"{done}/{len(runs)} runs finished{ran}"
+        )
+    return lines
+
+
+def report_markdown(root: Path, cells: list[Cell]) -> str:
+    """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
+    and the folder's hand-written ``notes.md`` (if any) at the top."""
+    grid = json.loads((root / "grid.json").read_text())
+    notes = root / "notes.md"
+    parts = [f"# Report: grid {grid.get('name', root.name)!r}\n"]
+    if notes.exists():
+        parts.append(notes.read_text().strip() + "\n")
+    parts += [
+        "## What ran\n",
+        "\n".join(_budget_lines(root, cells)) + "\n",
+        "## Scores, early learning, regularisation\n",
+        summary_markdown(cells),
+        "## The paper's claims against these data\n",
+        claims_markdown(cells),
+        "## Figures\n",
+        "- Test scores per seed and their mean: ![summary](fig_summary.png)\n"
+        "- Learning curves (mean over seeds, 95% band): ![learning](fig_learning.png)\n"
+        "- Regularisation amount sigma*(rho - rho_dagger): "
+        "![regularisation](fig_regularization.png)\n",
+        f"Regenerated from the run folders by `pporpe report` on this folder ({root.name}/).\n",
+    ]
+    return "\n".join(parts)
+
+
 def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
     """Write the summary table and figures into ``out`` (the grid's results folder)."""
     if not (isinstance(smooth, int) and smooth >= 1):
@@ -230,6 +439,7 @@ def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
     root = Path(out)
     cells = load_results(root)
     written = [
+        atomic_write_text(root / "REPORT.md", report_markdown(root, cells)),
         atomic_write_text(root / "summary.md", summary_markdown(cells)),
         atomic_write_text(root / "summary.csv", summary_csv(cells)),
     ]

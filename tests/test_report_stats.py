@@ -1,0 +1,125 @@
+"""The report's statistics against hand computations on a small fixture (issue 11)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from pporpe.experiments.report import load_results, write_report
+from pporpe.experiments.stats import (
+    bootstrap_ci,
+    iqm,
+    probability_of_improvement,
+    probability_of_improvement_ci,
+)
+from pporpe.runs.logger import EpisodeRecord, records_to_csv
+
+# Four seeds per method: scores (median test return), the return of every one of the
+# first 50 training episodes, and the regularisation amount of every episode.
+SCORES = {"rpe": [10.0, 20.0, 30.0, 100.0], "ppo": [0.0, 5.0, 40.0, 50.0]}
+EARLY = {"rpe": [1.0, 2.0, 3.0, 4.0], "ppo": [1.0, 1.0, 1.0, 1.0]}
+REG = {"rpe": [0.2, 0.3, 0.4, 0.5], "ppo": [0.0, 0.0, 0.1, 0.1]}
+
+
+def test_hand_worked_statistics() -> None:
+    # IQM: scipy trims int(0.25 n) from each end.
+    assert iqm(np.arange(1.0, 9.0)) == 4.5  # mean(3, 4, 5, 6)
+    assert iqm(np.arange(1.0, 11.0)) == 5.5  # mean(3..8)
+    assert iqm(np.asarray(SCORES["rpe"])) == 25.0  # mean(20, 30)
+    # P(X > Y) + P(X = Y)/2 over all 4 pairs: 3>1, 3=3 (half), 4>1, 4>3.
+    assert probability_of_improvement([3.0, 4.0], [1.0, 3.0]) == 0.875
+    # rpe vs ppo: 10 and 20 and 30 beat 2 each, 100 beats 4: 10 of 16 pairs.
+    assert probability_of_improvement(SCORES["rpe"], SCORES["ppo"]) == 0.625
+    assert probability_of_improvement([1.0], [1.0]) == 0.5
+    assert probability_of_improvement(SCORES["ppo"], SCORES["rpe"]) == 1 - 0.625
+
+
+def test_intervals_are_scipys_bootstrap_and_degenerate_cases_are_points() -> None:
+    data = np.asarray([3.0, 1.0, 4.0, 1.0, 5.0, 9.0, 2.0, 6.0, 5.0, 3.0])
+    est = bootstrap_ci(list(data))
+    ref = stats.bootstrap((data,), np.mean, n_resamples=10_000, method="BCa",
+                          rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
+    assert (est.value, est.low, est.high) == (data.mean(), ref.low, ref.high)
+    assert est.low < est.value < est.high
+    assert bootstrap_ci([7.0, 7.0, 7.0]).as_dict() == {"value": 7.0, "low": 7.0, "high": 7.0}
+    assert bootstrap_ci([7.0]).low == 7.0
+    poi = probability_of_improvement_ci(SCORES["rpe"], SCORES["ppo"])
+    assert poi.value == 0.625 and 0.0 <= poi.low <= 0.625 <= poi.high <= 1.0
+    assert probability_of_improvement_ci([2.0, 2.0], [2.0, 2.0]).as_dict()["high"] == 0.5
+    # Separated samples: every resample says X is ahead.
+    far = probability_of_improvement_ci([10.0, 11.0, 12.0], [0.0, 1.0, 2.0])
+    assert (far.value, far.low, far.high) == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="non-empty 1-D"):
+        bootstrap_ci([])
+
+
+def write_fixture(root: Path) -> None:
+    runs = []
+    for method in ("ppo", "rpe"):
+        for seed in range(4):
+            key = f"pendulum/{method}/seed{seed}"
+            run = root / key
+            run.mkdir(parents=True)
+            records = [
+                EpisodeRecord(
+                    episode=e,
+                    total_steps=10 * (e + 1),
+                    ret=EARLY[method][seed] if e < 50 else 1000.0,  # later episodes differ
+                    length=10,
+                    reg_amount=REG[method][seed],
+                    past_threshold=0.0,
+                    trace_decay=0.5,
+                    ratio_dev=0.0,
+                    wall_time=float(e),
+                )
+                for e in range(60)
+            ]
+            (run / "episodes.csv").write_text(records_to_csv(records))
+            (run / "evaluation.json").write_text(
+                json.dumps({"median": SCORES[method][seed], "returns": [SCORES[method][seed]]})
+            )
+            (run / "done.json").write_text("{}")
+            config = {"env": "pendulum", "seed": seed, "episodes": 60}
+            runs.append({"key": key, "method": method, "env": "pendulum", "seed": seed,
+                         "config": config})  # fmt: skip
+    (root / "grid.json").write_text(json.dumps({"name": "fixture", "runs": runs}))
+
+
+def test_report_tables_and_verdicts_match_hand_computation(tmp_path: Path) -> None:
+    write_fixture(tmp_path)
+    assert {c.method: sorted(c.scores.values()) for c in load_results(tmp_path)} == {
+        m: sorted(v) for m, v in SCORES.items()
+    }
+    write_report(tmp_path)
+    summary = (tmp_path / "summary.md").read_text()
+    report = (tmp_path / "REPORT.md").read_text()
+    rpe_row = next(line for line in summary.splitlines() if line.startswith("| pendulum | PPO-RPE"))
+    cells = [c.strip() for c in rpe_row.split("|")[1:-1]]
+    assert cells[2] == "4"
+    assert cells[3].startswith("40.0 [")  # mean(10, 20, 30, 100)
+    assert cells[4].startswith("25.0 [")  # IQM: mean(20, 30)
+    assert cells[5].startswith("2.5 [")  # first 50 episodes: mean(1, 2, 3, 4)
+    assert cells[6].startswith("0.350 [")  # regularisation: mean(0.2 .. 0.5)
+    ppo_row = next(line for line in summary.splitlines() if line.startswith("| pendulum | PPO |"))
+    assert "| 1.0 [1.0, 1.0] |" in ppo_row  # every PPO seed's first 50 returns are 1
+    poi_row = next(line for line in summary.splitlines() if "| vs PPO |" in line)
+    poi = [c.strip() for c in poi_row.split("|")[1:-1]]
+    assert poi[2].startswith("0.62 [")  # 10 of 16 pairs
+    # first 50: 1 ties all 4 of PPO's (2 halves), 2, 3, 4 beat all: (2 + 12) / 16
+    assert poi[3].startswith("0.88 [")
+    assert poi[4].startswith("1.00 [1.00, 1.00]")  # every rpe reg > every ppo reg
+    assert (
+        "| regularisation | pendulum | PPO | 1.00 [1.00, 1.00] | supported (PPO-RPE ahead) |"
+        in report
+    )
+    assert "| final performance | pendulum | PPO | 0.62 [" in report
+    assert "cannot tell at 4 seeds" in report
+    ran = "- pendulum: 60 training episodes per run, 8/8 runs finished; episodes run per"
+    assert f"{ran} finished run: 60-60" in report
+    (tmp_path / "notes.md").write_text("Hand-written context.")
+    write_report(tmp_path)
+    assert "Hand-written context." in (tmp_path / "REPORT.md").read_text()
