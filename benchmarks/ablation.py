@@ -1,9 +1,10 @@
 """Ablation of the learner choices where pporpe 0.2 and the author's test bed differ.
 
-Each *variant* is the baseline (pporpe 0.2's choices) with one change, or all changes
-together; every variant runs the paper's comparison (PPO, PPO-RB, PPO-RPE) on
-InvertedPendulum and Swingup at the paper's 200 episodes with 10 seeds, through the grid
-machinery (populations, checkpoints, resume). It prints, per variant, task and method:
+Each *variant* is the baseline (pporpe 0.2's choices, ``V0_2_CHOICES``) with one change,
+or all changes together (``AUTHOR_CHOICES``, pporpe 0.3's defaults); every variant runs
+the paper's comparison (PPO, PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the
+paper's 200 episodes with 10 seeds, through the grid machinery (populations, checkpoints,
+resume). It prints, per variant, task and method:
 
 * the mean and the interquartile mean (IQM) of the per-seed score (median of the test
   episodes), each with a bootstrap 95% CI (scipy.stats.bootstrap, BCa, 10,000 resamples);
@@ -35,6 +36,7 @@ from pporpe.evaluation import load_evaluation
 from pporpe.experiments.grid import parse_spec
 from pporpe.experiments.reproduce import reproduce
 from pporpe.experiments.stats import bootstrap_ci, iqm
+from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES
 from pporpe.runs.logger import read_records
 
 AUTHOR: dict[str, dict[str, Any]] = {
@@ -48,10 +50,13 @@ AUTHOR: dict[str, dict[str, Any]] = {
 """Each difference, as the OnlineConfig fields that give the author's choice."""
 
 VARIANTS: dict[str, dict[str, Any]] = {
-    "baseline": {},
-    **AUTHOR,
-    "all": {k: v for change in AUTHOR.values() for k, v in change.items()},
+    "baseline": dict(V0_2_CHOICES),
+    **{name: {**V0_2_CHOICES, **change} for name, change in AUTHOR.items()},
+    "all": {**V0_2_CHOICES, **{k: v for change in AUTHOR.values() for k, v in change.items()}},
 }
+"""Each variant's learner settings, every choice explicit (pporpe 0.3's defaults are
+"all")."""
+assert VARIANTS["all"] == dict(AUTHOR_CHOICES)
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 METHODS = ("ppo", "rb", "rpe")
 
@@ -130,7 +135,8 @@ def main() -> None:
     if not args.summarize:
         for variant in args.variants:
             spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
-            print(f"variant {variant}: {VARIANTS[variant] or 'pporpe 0.2 choices'}", flush=True)
+            changed = {k: v for k, v in VARIANTS[variant].items() if V0_2_CHOICES[k] != v}
+            print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
             outcome = reproduce(spec, out / variant, workers=args.workers)
             print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
                   f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip

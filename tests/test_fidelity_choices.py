@@ -5,6 +5,7 @@ defaults unchanged (pporpe 0.2's numbers)."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +15,13 @@ from torch.distributions import Normal, kl_divergence
 from pporpe.advantages import regularized_advantage
 from pporpe.nn.batched import forward_chain
 from pporpe.nn.policies import NormalHead, StudentTHead
-from pporpe.online.config import OnlineConfig
+from pporpe.online.config import V0_2_CHOICES, OnlineConfig
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import surrogate_objective
 
-SMALL = {"layers": 2, "units": 16, "compile": False}
+# pporpe 0.2's learner choices pinned: the reference learner implements them, and each
+# choice's test compares it against them.
+SMALL = {"layers": 2, "units": 16, "compile": False, **V0_2_CHOICES}
 OBS, ACT = 3, 2
 
 
@@ -145,6 +148,20 @@ def test_analytic_trace_divergence_in_the_learner() -> None:
     assert expected > 0.0
 
 
+def test_a_checkpoint_without_raw_b_is_refused_by_the_analytic_divergence() -> None:
+    """Without pi_b's raw output the first KL after resuming would be against a made-up
+    policy: refused, with the way out; the sample divergence does not need it."""
+    p = pop([cfg(trace_divergence="analytic")], [3])
+    drive(p, 1)
+    state = p.member_state(0)
+    del state["pending"]["raw_b"]
+    with pytest.raises(ValueError, match=r"no raw_b.*trace_divergence='sample'"):
+        pop([cfg(trace_divergence="analytic")], [3]).load_member_state(
+            0, cfg(trace_divergence="analytic"), state
+        )
+    pop([cfg()], [3]).load_member_state(0, cfg(), state)  # the 0.2 divergence: fine
+
+
 def test_amsgrad_maximum_raw_or_bias_corrected() -> None:
     """With decay 1 the maximum is the running max of the raw second moment ("raw") or,
     stored scaled by the bias correction, bc2_t times the running max of v_t / bc2_t."""
@@ -208,3 +225,38 @@ def test_frozen_layer_norm_keeps_scale_and_shift() -> None:
 def test_bad_choice_is_refused_by_name(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=field):
         OnlineConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_defaults_are_the_authors_choices_and_v0_2_restores_the_old_learner() -> None:
+    """pporpe 0.3 adopts the author's test-bed choices (the ablation's "all" variant)."""
+    from pporpe.online.config import AUTHOR_CHOICES
+
+    assert set(AUTHOR_CHOICES) == set(V0_2_CHOICES)
+    default = OnlineConfig()
+    assert {k: getattr(default, k) for k in AUTHOR_CHOICES} == dict(AUTHOR_CHOICES)
+    old = OnlineConfig(**V0_2_CHOICES)  # type: ignore[arg-type]
+    assert all(getattr(old, k) != getattr(default, k) for k in AUTHOR_CHOICES)
+
+
+def test_run_folders_written_before_the_choices_existed_keep_what_they_ran_with(
+    tmp_path: Path,
+) -> None:
+    """A config.json without the choice fields (pporpe 0.1.0, early 0.2) is read with the
+    values that run used, not with today's defaults; a complete one is read as written."""
+    import json
+
+    from pporpe.runs.folder import read_config
+
+    fixture = Path(__file__).parent / "fixtures" / "run_v0_1_online" / "config.json"
+    data = json.loads(fixture.read_text())
+    # The fixture predates the six choice fields (amsgrad_decay existed: 0.999).
+    assert set(V0_2_CHOICES) & set(data["learner"]) == {"amsgrad_decay"}
+    assert data["learner"]["amsgrad_decay"] == 0.999
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "config.json").write_text(json.dumps(data))
+    _, cfg = read_config(tmp_path / "old")
+    assert {k: getattr(cfg.learner, k) for k in V0_2_CHOICES} == dict(V0_2_CHOICES)
+    data["learner"]["critic_signal"] = "actor"  # written explicitly: kept
+    (tmp_path / "old" / "config.json").write_text(json.dumps(data))
+    _, cfg = read_config(tmp_path / "old")
+    assert cfg.learner.critic_signal == "actor" and cfg.learner.td_units == "scaled"

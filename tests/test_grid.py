@@ -131,6 +131,21 @@ def test_cli_rejects_bad_spec_before_any_run(
     assert not out.exists()
 
 
+def test_cli_selects_a_chunk_and_refuses_an_unknown_task(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    spec = write_spec(tmp_path)
+    out = tmp_path / "out"
+    assert main(["reproduce", str(spec), "--out", str(out), "--tasks", "ant", "--quiet"]) == 2
+    assert "--tasks ant: not in the spec" in capsys.readouterr().err
+    assert not out.exists()
+    args = ["reproduce", str(spec), "--out", str(out), "--methods", "rpe", "--seeds", "1"]
+    assert main([*args, "--quiet"]) == 0
+    assert "1 runs done" in capsys.readouterr().out
+    assert sorted(p.name for p in (out / "pendulum").iterdir()) == ["rpe"]
+    assert [p.name for p in (out / "pendulum" / "rpe").iterdir()] == ["seed1"]
+
+
 # ------------------------------------------------------------------------------------
 # Local backend, failures, report
 # ------------------------------------------------------------------------------------

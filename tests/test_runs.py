@@ -71,7 +71,8 @@ def fixture_config(name: str) -> Any:
     if name == "batch":
         data.pop("learner")
         return config_from_dict(BatchConfig, data)
-    return config_from_dict(TrainConfig, data)
+    # What the run ran with: the choice fields it predates at pporpe 0.2's values.
+    return config_from_dict(TrainConfig, get_kind("online").upgrade_config(data))
 
 
 @pytest.mark.parametrize("name", ["batch"])
@@ -430,3 +431,30 @@ def test_grid_summary_keeps_the_runs_of_earlier_chunks(tmp_path: Path) -> None:
     path.write_text("{not json")
     with pytest.raises(ValueError, match=r"grid\.json: not a grid summary written by pporpe"):
         merged_grid_summary(path, second)
+
+
+def test_a_chunk_or_a_cell_of_a_grid_is_selected_by_task_method_and_seed() -> None:
+    from pporpe.experiments.grid import select_runs
+
+    register_kind(CountKind())
+    spec = parse_spec(
+        {
+            "kind": "count",
+            "methods": ["ppo", "rpe"],
+            "seeds": 3,
+            "tasks": [{"env": "pendulum", "episodes": 4}, {"env": "swingup", "episodes": 4}],
+        },
+        "g.toml",
+    )
+    assert len(select_runs(spec).runs) == 12
+    chunk = select_runs(spec, tasks=["swingup"])
+    assert {r.env for r in chunk.runs} == {"swingup"} and len(chunk.runs) == 6
+    cell = select_runs(spec, tasks=["pendulum"], methods=["rpe"], seeds=[0, 2])
+    assert [r.key for r in cell.runs] == ["pendulum/rpe/seed0", "pendulum/rpe/seed2"]
+    assert cell.runs[0] == spec.runs[1]  # the same run (config included) as in the full grid
+    with pytest.raises(
+        ValueError, match=r"--tasks ant: not in the spec 'g.toml', which has pendulum, swingup"
+    ):
+        select_runs(spec, tasks=["pendulum", "ant"])
+    with pytest.raises(ValueError, match=r"--seeds 7: not in the spec"):
+        select_runs(spec, seeds=[7])

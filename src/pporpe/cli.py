@@ -160,10 +160,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .experiments.grid import load_spec
+    from .experiments.grid import load_spec, select_runs
     from .experiments.reproduce import reproduce
 
     spec = load_spec(args.spec)  # every run is validated before any starts
+    if args.tasks or args.methods or args.seeds:  # one chunk of the grid, or one cell
+        spec = select_runs(spec, args.tasks, args.methods, args.seeds)
     print(
         f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
         f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
@@ -381,6 +383,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=_nonneg_float,
         default=None,
         help="least seconds between two checkpoints of a population (default 60)",
+    )
+    rp.add_argument(
+        "--tasks", nargs="+", default=None, metavar="TASK", help="only these tasks of the spec"
+    )
+    rp.add_argument(
+        "--methods", nargs="+", default=None, metavar="METHOD", help="only these methods"
+    )
+    rp.add_argument(
+        "--seeds",
+        nargs="+",
+        type=_nonneg_int,
+        default=None,
+        metavar="SEED",
+        help="only these seeds",
     )
     rp.add_argument("--report", action="store_true", help="write the report when done")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ from ..envs import resolve_env_id
 from ..runs.kinds import get_kind
 from ..surrogates import METHODS
 
-__all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec"]
+__all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec", "select_runs"]
 
 _TOP_FIELDS = {
     "name",
@@ -90,6 +91,43 @@ class GridSpec:
     def envs(self) -> list[str]:
         """Tasks in the grid, in spec order."""
         return list(dict.fromkeys(r.env for r in self.runs))
+
+
+def select_runs(
+    spec: GridSpec,
+    tasks: Sequence[str] | None = None,
+    methods: Sequence[str] | None = None,
+    seeds: Sequence[int] | None = None,
+) -> GridSpec:
+    """The part of ``spec`` with these tasks, methods and seeds (None: all): one chunk of a
+    grid, or one cell to re-run. Each value must be in the spec (ValueError naming the
+    option and what the spec has)."""
+    asked: dict[str, Sequence[Any] | None] = {"tasks": tasks, "methods": methods, "seeds": seeds}
+    have: dict[str, list[Any]] = {
+        "tasks": spec.envs,
+        "methods": spec.methods,
+        "seeds": list(dict.fromkeys(r.seed for r in spec.runs)),
+    }
+    chosen: dict[str, set[Any] | None] = {}
+    for option, values in asked.items():
+        if values is None:
+            chosen[option] = None
+            continue
+        unknown = [v for v in values if v not in have[option]]
+        if unknown or not values:
+            raise ValueError(
+                f"--{option} {' '.join(str(v) for v in (unknown or values))}: not in the spec "
+                f"{spec.source!r}, which has {', '.join(str(v) for v in have[option])}"
+            )
+        chosen[option] = set(values)
+
+    def keep(r: RunSpec) -> bool:
+        return all(
+            chosen[o] is None or v in chosen[o]  # type: ignore[operator]
+            for o, v in (("tasks", r.env), ("methods", r.method), ("seeds", r.seed))
+        )
+
+    return dataclasses.replace(spec, runs=tuple(r for r in spec.runs if keep(r)))
 
 
 def _fail(where: str, field: str, value: Any, allowed: str) -> ValueError:

@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from types import MappingProxyType
+from typing import Any, Literal, get_args
 
 from ..config import (
     Activation,
@@ -21,10 +23,12 @@ from ..config import (
 
 __all__ = [
     "AMSGRAD_MAXES",
+    "AUTHOR_CHOICES",
     "CRITIC_SIGNALS",
     "ENTROPY_DENSITIES",
     "TD_UNITS",
     "TRACE_DIVERGENCES",
+    "V0_2_CHOICES",
     "OnlineConfig",
     "TrainConfig",
 ]
@@ -41,12 +45,44 @@ TraceDivergence = Literal["sample", "analytic"]
 TRACE_DIVERGENCES: tuple[str, ...] = get_args(TraceDivergence)
 
 
+AUTHOR_CHOICES: Mapping[str, Any] = MappingProxyType(
+    {
+        "critic_signal": "actor",
+        "td_units": "unscaled",
+        "entropy_density": "pre_squash",
+        "amsgrad_max": "raw",
+        "amsgrad_decay": 0.99999,
+        "layer_norm_affine": False,
+        "trace_divergence": "analytic",
+    }
+)
+"""The choices where the paper is silent, as the author's test bed makes them: pporpe's
+defaults since 0.3."""
+
+V0_2_CHOICES: Mapping[str, Any] = MappingProxyType(
+    {
+        "critic_signal": "td",
+        "td_units": "scaled",
+        "entropy_density": "action",
+        "amsgrad_max": "bias_corrected",
+        "amsgrad_decay": 0.999,
+        "layer_norm_affine": True,
+        "trace_divergence": "sample",
+    }
+)
+"""The same fields as pporpe 0.2 set them (``OnlineConfig(**V0_2_CHOICES)``); also what a
+run folder written before these fields existed ran with."""
+
+
 @dataclass(frozen=True)
 class OnlineConfig:
     """Settings of the paper's online actor-critic learner (Algorithm 1, Table I).
 
-    Defaults are the paper's. Optimiser constants the paper leaves at "default" are
-    documented in :class:`pporpe.online.optim.TDAmsProp`.
+    Defaults are the paper's. Where the paper is silent, they follow the author's public
+    test bed (:data:`AUTHOR_CHOICES`, adopted in pporpe 0.3 on the ablation's evidence,
+    docs/online-learner.md); :data:`V0_2_CHOICES` restores pporpe 0.2's learner.
+    Optimiser constants the paper leaves at "default" are documented in
+    :class:`pporpe.online.optim.TDAmsProp`.
     """
 
     method: Method = "rpe"
@@ -69,13 +105,13 @@ class OnlineConfig:
     """td-AmsProp denominator epsilon, > 0."""
     k_dof: float = 1.0
     """t-momentum degrees of freedom per parameter, > 0 (``inf`` gives LaProp)."""
-    amsgrad_decay: float = 0.999
-    """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none); the
-    author's optimiser uses 0.99999."""
-    amsgrad_max: AmsgradMax = "bias_corrected"
-    """td-AmsProp's running maximum: over the bias-corrected second moment
-    (``"bias_corrected"``, pporpe 0.2) or over the raw one, bias-corrected after
-    (``"raw"``, the author's optimiser)."""
+    amsgrad_decay: float = 0.99999
+    """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none): 0.99999 as
+    the author's optimiser (pporpe 0.2: 0.999)."""
+    amsgrad_max: AmsgradMax = "raw"
+    """td-AmsProp's running maximum: over the raw second moment, bias-corrected after
+    (``"raw"``, the author's optimiser, default) or over the bias-corrected one
+    (``"bias_corrected"``, pporpe 0.2)."""
     tau: float = 0.3
     """t-soft target update rate tau, in (0, 1]."""
     nu: float = 1.0
@@ -88,24 +124,25 @@ class OnlineConfig:
     """Gain beta_TD >= 0 of TD regularisation (Parisi et al. 2019)."""
     beta_de: float = 0.01
     """Gain beta_DE >= 0 of entropy regularisation (SAC-style)."""
-    td_units: TDUnits = "scaled"
-    """Units of delta in the TD regulariser: ``"scaled"``, beta_TD * delta^2 with delta in
-    scaled-reward units (pporpe 0.2), or ``"unscaled"``, beta_TD * (delta / (1 - gamma))^2
-    (the author's test bed): 1 / (1 - gamma)^2 = 10^4 times stronger at gamma = 0.99."""
-    entropy_density: EntropyDensity = "action"
-    """Log-density in the entropy regulariser: of the bounded action, the map's Jacobian
-    included (``"action"``, pporpe 0.2), or of the pre-map variable u (``"pre_squash"``,
-    the author's test bed)."""
-    critic_signal: CriticSignal = "td"
-    """What trains the value network: the TD error (``"td"``: delta * grad V, pporpe
-    0.2), or the actor's signal and weight (``"actor"``: A * rho_dagger * grad V with
-    rho_dagger = obj(rho, A) / A detached, the surrogate's effective ratio; the author's
-    test bed trains both networks with -A * rho_w * (V + log pi))."""
-    trace_divergence: TraceDivergence = "sample"
-    """Divergence that cuts the adaptive traces: ``"sample"``, (rho - 1 - log rho) +
-    (V - V_b)^2 at the sampled action (pporpe 0.2), or ``"analytic"``, KL(pi || pi_b)
-    between the two policies at s_t (a normal-gamma approximation for the student-t) +
-    (V - V_b)^2 / 2 (the author's test bed)."""
+    td_units: TDUnits = "unscaled"
+    """Units of delta in the TD regulariser: ``"unscaled"`` (default, the author's test
+    bed), beta_TD * (delta / (1 - gamma))^2, or ``"scaled"`` (pporpe 0.2), beta_TD *
+    delta^2 with delta in scaled-reward units, 1 / (1 - gamma)^2 = 10^4 times weaker at
+    gamma = 0.99."""
+    entropy_density: EntropyDensity = "pre_squash"
+    """Log-density in the entropy regulariser: of the pre-map variable u
+    (``"pre_squash"``, default, the author's test bed), or of the bounded action, the
+    map's Jacobian included (``"action"``, pporpe 0.2)."""
+    critic_signal: CriticSignal = "actor"
+    """What trains the value network: the actor's signal and weight (``"actor"``, default:
+    A * rho_dagger * grad V with rho_dagger = obj(rho, A) / A detached, the surrogate's
+    effective ratio; the author's test bed trains both networks with
+    -A * rho_w * (V + log pi)), or the TD error (``"td"``: delta * grad V, pporpe 0.2)."""
+    trace_divergence: TraceDivergence = "analytic"
+    """Divergence that cuts the adaptive traces: ``"analytic"`` (default, the author's
+    test bed), KL(pi || pi_b) between the two policies at s_t (a normal-gamma
+    approximation for the student-t) + (V - V_b)^2 / 2, or ``"sample"`` (pporpe 0.2),
+    (rho - 1 - log rho) + (V - V_b)^2 at the sampled action."""
     reward_scale: float | None = None
     """Multiplier of rewards; ``None`` means 1 - gamma (the author's test bed)."""
     layers: int = 5
@@ -114,9 +151,9 @@ class OnlineConfig:
     """Units N per hidden layer, >= 1."""
     layer_norm: bool = True
     """LayerNorm after each hidden linear layer."""
-    layer_norm_affine: bool = True
-    """Learn LayerNorm's scale and shift (pporpe 0.2); False keeps them at 1 and 0, as the
-    author's networks, which have none."""
+    layer_norm_affine: bool = False
+    """Learn LayerNorm's scale and shift (True, pporpe 0.2), or keep them at 1 and 0
+    (False, default), as the author's networks, which have none."""
     activation: Activation = "swish"
     """Hidden activation: ``"swish"`` (x*sigmoid(x)), ``"relu"`` or ``"tanh"``."""
     policy: PolicyKind = "student_t"

@@ -22,7 +22,7 @@ from ..envs import ReplayableEnv, env_spec_summary, make_env
 from ..policy import Policy
 from ..runs.kinds import Episode, Progress, register_kind
 from ..surrogates import regularization_amount
-from .config import OnlineConfig, TrainConfig
+from .config import V0_2_CHOICES, OnlineConfig, TrainConfig
 from .learner import OnlineLearner
 from .population import PopulationLearner
 from .stats import StepStats
@@ -280,6 +280,16 @@ class OnlineKind:
     def make_trainer(self, cfg: TrainConfig, capacity: int) -> OnlineTrainer:
         """A population of ``capacity`` slots for runs shaped like ``cfg``."""
         return OnlineTrainer(cfg, capacity)
+
+    def upgrade_config(self, data: dict[str, Any]) -> dict[str, Any]:
+        """``config.json`` of a run written before the learner choices of pporpe 0.2.x
+        existed: the missing ones are what that run ran with (:data:`V0_2_CHOICES`), not
+        today's defaults."""
+        learner = data.get("learner")
+        if not isinstance(learner, dict):
+            return data
+        missing = {k: v for k, v in V0_2_CHOICES.items() if k not in learner}
+        return {**data, "learner": {**learner, **missing}} if missing else data
 
     def budget(self, cfg: TrainConfig) -> tuple[int, str]:
         """Episodes, or steps when the run is measured in steps."""

@@ -82,6 +82,11 @@ def load_member_state(
     if pending is not None:
         pop._obs[k], pop._u[k] = pending["obs"], pending["u"]
         pop._logp_b[k], pop._value_b[k] = pending["logp_b"], pending["value_b"]
+        if "raw_b" not in pending and bool(pop._b["kl_analytic"][k]):
+            raise ValueError(
+                "this checkpoint's pending transition has no raw_b (pi_b's output), which "
+                "trace_divergence='analytic' needs; resume it with trace_divergence='sample'"
+            )
         pop._raw_b[k] = pending.get("raw_b", torch.zeros(pop.head.raw_dim))
 
 

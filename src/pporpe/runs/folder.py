@@ -46,12 +46,19 @@ def config_json(kind: LearnerKind, cfg: Any) -> dict[str, Any]:
 
 
 def _normalized(data: dict[str, Any]) -> dict[str, Any]:
-    """``config.json`` content in the current form (adds the kind of 0.1.0 folders)."""
-    if "kind" in data:
+    """``config.json`` content in the current form: adds the kind of 0.1.0 folders, then
+    lets the kind fill in settings its older versions did not write
+    (``kind.upgrade_config``, optional), with the values those versions ran with."""
+    if "kind" not in data:
+        if data.get("learner") == "batch":
+            data = {"kind": "batch", **{k: v for k, v in data.items() if k != "learner"}}
+        else:
+            data = {"kind": "online", **data}
+    try:
+        upgrade = getattr(get_kind(data["kind"]), "upgrade_config", None)
+    except (KeyError, ValueError):
         return data
-    if data.get("learner") == "batch":
-        return {"kind": "batch", **{k: v for k, v in data.items() if k != "learner"}}
-    return {"kind": "online", **data}
+    return data if upgrade is None else upgrade(data)
 
 
 def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
