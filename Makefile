@@ -32,9 +32,11 @@ reproduce: $(VENV)/.installed
 	$(VENV)/bin/pporpe figures --out $(OUT)/figures
 	$(VENV)/bin/pporpe reproduce experiments/quick.toml --out $(OUT)/quick --report
 
-## The paper's full grid (3 methods x 4 tasks x 10 seeds): about 20 hours on 2 cores (estimated by benchmarks/throughput.py).
+## The paper's grid (3 methods x 4 tasks x 10 seeds) into results/paper, whose finished runs
+## are committed: it resumes, training only what is missing, then rewrites REPORT.md.
+## One chunk at a time: make reproduce-paper ARGS="--tasks halfcheetah" (README: times per task).
 reproduce-paper: $(VENV)/.installed
-	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report
+	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report $(ARGS)
 
 ## Benchmarks (long): throughput, learning quality, and the batch trainer against SB3.
 bench: bench-sb3

@@ -134,29 +134,16 @@ class PPO(_SB3PPO):
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         log_ratio = log_prob - data.old_log_prob
         ratio = torch.exp(log_ratio)
-        objective = surrogate_objective(
-            self.surrogate,  # type: ignore[arg-type]
-            ratio,
-            adv,
-            eps=eps,
-            beta=self.rpe_beta,
-            eta=self.eta,
-        )
-        policy_loss = -objective.mean()
+        params: dict[str, Any] = {"eps": eps, "beta": self.rpe_beta, "eta": self.eta}
+        method: Any = self.surrogate
+        policy_loss = -surrogate_objective(method, ratio, adv, **params).mean()
         if clip_vf is not None:  # the value moves at most clip_vf from the rollout's value
             values = data.old_values + torch.clamp(values - data.old_values, -clip_vf, clip_vf)
         value_loss = F.mse_loss(data.returns, values)
         entropy_loss = -torch.mean(-log_prob) if entropy is None else -torch.mean(entropy)
         loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
         with torch.no_grad():
-            reg = regularization_amount(
-                self.surrogate,  # type: ignore[arg-type]
-                ratio,
-                adv,
-                eps=eps,
-                beta=self.rpe_beta,
-                eta=self.eta,
-            )
+            reg = regularization_amount(method, ratio, adv, **params)
             metrics = {
                 "policy_gradient_loss": policy_loss.detach(),
                 "value_loss": value_loss.detach(),
