@@ -144,6 +144,8 @@ def test_cli_selects_a_chunk_and_refuses_an_unknown_task(
     assert "1 runs done" in capsys.readouterr().out
     assert sorted(p.name for p in (out / "pendulum").iterdir()) == ["rpe"]
     assert [p.name for p in (out / "pendulum" / "rpe").iterdir()] == ["seed1"]
+    listed = [r["key"] for r in json.loads((out / "grid.json").read_text())["runs"]]
+    assert len(listed) == 4  # the whole grid, so that the report counts the missing runs
 
 
 # ------------------------------------------------------------------------------------

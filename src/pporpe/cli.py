@@ -164,6 +164,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     from .experiments.reproduce import reproduce
 
     spec = load_spec(args.spec)  # every run is validated before any starts
+    whole = spec
     if args.tasks or args.methods or args.seeds:  # one chunk of the grid, or one cell
         spec = select_runs(spec, args.tasks, args.methods, args.seeds)
     print(
@@ -185,6 +186,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
             if args.checkpoint_seconds is None
             else args.checkpoint_seconds
         ),
+        whole=whole,
     )
     print(
         f"{len(outcome.done)} runs done ({len(outcome.skipped)} were already done), "

@@ -313,7 +313,11 @@ def _curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth
         ax.set_xlabel("episode")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no finished runs yet", ha="center", va="center",
+                    transform=ax.transAxes)  # fmt: skip
     suffix = f"; moving average over {smooth} episodes" if smooth > 1 else ""
     fig.suptitle(f"{title} (mean over seeds, shaded: 95% CI{suffix})")
     fig.tight_layout()

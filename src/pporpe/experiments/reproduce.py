@@ -315,8 +315,12 @@ def reproduce(
     progress: bool = True,
     population: int = DEFAULT_POPULATION,
     checkpoint_seconds: float = DEFAULT_CHECKPOINT_SECONDS,
+    whole: GridSpec | None = None,
 ) -> GridOutcome:
     """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome.
+
+    ``whole``: the grid ``spec`` is a chunk of (:func:`~.grid.select_runs`); ``grid.json``
+    then lists all of its runs, so that the report counts what is still missing.
 
     Online runs of one task are trained ``population`` at a time by one worker
     (:func:`plan_jobs`); their checkpoints are written at most every
@@ -343,7 +347,8 @@ def reproduce(
         )
     out_dir = Path(out).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", spec))
+    listed = spec if whole is None else whole  # a chunk lists the whole grid
+    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
 
     t0 = time.perf_counter()
     skipped: list[str] = []
