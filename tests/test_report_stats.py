@@ -123,3 +123,16 @@ def test_report_tables_and_verdicts_match_hand_computation(tmp_path: Path) -> No
     (tmp_path / "notes.md").write_text("Hand-written context.")
     write_report(tmp_path)
     assert "Hand-written context." in (tmp_path / "REPORT.md").read_text()
+
+
+def test_what_ran_names_a_batch_grids_step_budget(tmp_path: Path) -> None:
+    write_fixture(tmp_path)
+    grid = json.loads((tmp_path / "grid.json").read_text())
+    for run in grid["runs"]:  # batch runs: their budget is total_steps
+        run["config"] = {"env": "pendulum", "seed": run["seed"], "total_steps": 4096}
+    (tmp_path / "grid.json").write_text(json.dumps(grid))
+    write_report(tmp_path)
+    assert (
+        "- pendulum: 4096 training steps per run, 8/8 runs finished"
+        in (tmp_path / "REPORT.md").read_text()
+    )

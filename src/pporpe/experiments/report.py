@@ -398,7 +398,10 @@ def _budget_lines(root: Path, cells: list[Cell]) -> list[str]:
     lines = []
     for env in _envs(cells):
         runs = [r for r in grid["runs"] if r["env"] == env]
-        budgets = sorted({r["config"].get("episodes") or r["config"].get("steps") for r in runs})
+        def budget(cfg: dict[str, Any]) -> Any:  # online: episodes or steps; batch: total_steps
+            return cfg.get("episodes") or cfg.get("steps") or cfg.get("total_steps")
+
+        budgets = sorted({budget(r["config"]) for r in runs}, key=str)
         unit = "episodes" if runs and runs[0]["config"].get("episodes") else "steps"
         here = [c for c in cells if c.env == env]
         done = sum(len(c.curves) for c in here)
