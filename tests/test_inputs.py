@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from interrupt import Interrupted, at_episode
 
 from pporpe.batch.config import BatchConfig
 from pporpe.cli import main
@@ -33,15 +34,8 @@ def unfinished(tmp_path: Path) -> tuple[TrainConfig, Path]:
     """A run stopped after its checkpoint at 2 episodes (of 4)."""
     cfg, run = tiny_run(tmp_path)
 
-    class Stop(RuntimeError):
-        pass
-
-    def stop(rec: Any) -> None:
-        if rec.episode == 2:
-            raise Stop
-
-    with pytest.raises(Stop):
-        train(cfg, run, progress=False, on_episode=stop)
+    with pytest.raises(Interrupted):
+        train(cfg, run, progress=False, on_episode=at_episode(2))
     return cfg, run
 
 

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from interrupt import Interrupted, at_episode
 
 from pporpe.batch import BatchConfig, load_batch_learner, train_batch
 from pporpe.cli import main
@@ -257,15 +258,8 @@ def test_a_registered_kind_trains_resumes_and_runs_in_a_grid(tmp_path: Path) -> 
     assert [r.episode for r in full.records] == [0, 1, 2, 3, 4]
     assert json.loads((tmp_path / "full" / "done.json").read_text())["chunks"] == 5
 
-    class Stop(RuntimeError):
-        pass
-
-    def stop_at_3(rec: Any) -> None:
-        if rec.episode == 2:
-            raise Stop
-
-    with pytest.raises(Stop):
-        train(CountConfig(seed=7), tmp_path / "cut", progress=False, on_episode=stop_at_3)
+    with pytest.raises(Interrupted):
+        train(CountConfig(seed=7), tmp_path / "cut", progress=False, on_episode=at_episode(2))
     assert len(read_records(tmp_path / "cut" / "episodes.csv")) == 2  # checkpoint after 2
     resumed = train(CountConfig(seed=7), tmp_path / "cut", progress=False)
     assert resumed.resumed_from == 2
@@ -353,15 +347,8 @@ def test_an_online_population_compacts_and_resumes_identically(tmp_path: Path) -
     full = run_queue(runs(tmp_path / "a"), capacity=3, home=tmp_path / "a")
     assert json.loads((tmp_path / "a" / "population.json").read_text())["slots"] == [None]
 
-    class Stop(RuntimeError):
-        pass
-
-    def stop(rec: Any) -> None:
-        if rec.episode == 7:
-            raise Stop
-
-    with pytest.raises(Stop):
-        run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b", on_episode=stop)
+    with pytest.raises(Interrupted):
+        run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b", on_episode=at_episode(7))
     saved = json.loads((tmp_path / "b" / "population.json").read_text())
     assert saved["slots"] == [str(tmp_path / "b" / "s1")]  # compacted before the stop
     again = run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b")

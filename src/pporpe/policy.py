@@ -65,8 +65,7 @@ class Policy:
         """The run's configuration (``TrainConfig`` or ``BatchConfig``), or None."""
         self.kind = kind
         """The learner kind that trained it (``"online"``, ``"batch"``)."""
-        self._rng_state: Tensor | None = None
-        self.seed(0)
+        self._rng_state: Tensor = torch.Generator().manual_seed(0).get_state()
 
     @property
     def env(self) -> str | None:
@@ -111,7 +110,6 @@ class Policy:
             u = self.head.location(raw)
         else:
             with torch.random.fork_rng(devices=[]):
-                assert self._rng_state is not None
                 torch.set_rng_state(self._rng_state)
                 u = self.head.sample(raw)
                 self._rng_state = torch.get_rng_state()

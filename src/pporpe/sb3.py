@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from .config import is_real
 from .surrogates import METHODS, regularization_amount, rpe_divergence, surrogate_objective
 
 try:
@@ -63,16 +64,12 @@ def _check_args(surrogate: Any, eta: Any, rpe_beta: Any, clip_range: Any) -> Non
         raise ValueError(
             f"`surrogate` must be one of {', '.join(map(repr, METHODS))}; got {surrogate!r}"
         )
-    if not (isinstance(eta, int | float) and not isinstance(eta, bool)) or not (
-        0.0 <= eta < math.inf
-    ):
+    if not (is_real(eta) and 0.0 <= eta < math.inf):
         raise ValueError(f"`eta` must be a finite number >= 0 (PPO-RB's slope); got {eta!r}")
-    if not (isinstance(rpe_beta, int | float) and not isinstance(rpe_beta, bool)) or not (
-        0.0 <= rpe_beta <= 1.0
-    ):
+    if not (is_real(rpe_beta) and 0.0 <= rpe_beta <= 1.0):
         raise ValueError(f"`rpe_beta` must be a number in [0, 1]; got {rpe_beta!r}")
-    if isinstance(clip_range, int | float) and not isinstance(clip_range, bool):
-        if not 0.0 < clip_range < 1.0:
+    if not callable(clip_range):  # a constant (a schedule is checked at each update)
+        if not (is_real(clip_range) and 0.0 < clip_range < 1.0):
             raise ValueError(
                 f"`clip_range` (the paper's eps) must be in (0, 1) for pporpe's surrogates; "
                 f"got {clip_range!r}"

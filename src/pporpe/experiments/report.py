@@ -49,11 +49,13 @@ from .stats import (
 __all__ = [
     "EARLY_EPISODES",
     "Cell",
+    "Statistics",
     "early_return",
     "improvement_rows",
     "load_results",
     "mean_ci",
     "mean_regularization",
+    "statistics",
     "write_report",
 ]
 
@@ -204,16 +206,33 @@ def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]
     return rows
 
 
-def summary_markdown(cells: list[Cell]) -> str:
+@dataclass(frozen=True)
+class Statistics:
+    """Every statistic a report prints, computed once (the bootstraps are the slow part)."""
+
+    rows: list[dict[str, Any]]
+    """Per task and method: scores, early learning, regularisation (``summary.csv``)."""
+    improvements: list[dict[str, Any]]
+    """Per task and rival: the probabilities of improvement of PPO-RPE."""
+
+
+def statistics(cells: list[Cell]) -> Statistics:
+    """The tables of a report: :func:`_table_rows` and :func:`improvement_rows`."""
+    return Statistics(_table_rows(cells), improvement_rows(cells))
+
+
+def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     """The summary tables as Markdown: scores, early learning and regularisation per task
-    and method, then the probabilities of improvement of PPO-RPE over each rival."""
+    and method, then the probabilities of improvement of PPO-RPE over each rival
+    (``stats``: already computed :func:`statistics` of ``cells``)."""
+    stats = statistics(cells) if stats is None else stats
     lines = [
         "| task | method | seeds | mean score [95% CI] | IQM [95% CI] "
         f"| first-{EARLY_EPISODES} episodes mean return [95% CI] "
         "| mean regularisation [95% CI] | missing |",
         "| --- | --- | ---: | :---: | :---: | :---: | :---: | ---: |",
     ]
-    for r in _table_rows(cells):
+    for r in stats.rows:
         lines.append(
             f"| {r['task']} | {r['method']} | {r['seeds']} | {_fmt_ci(r, 'boot')} | "
             f"{_fmt_ci(r, 'iqm')} | {_fmt_ci(r, 'first50')} | {_fmt_ci(r, 'reg', 3)} | "
@@ -225,7 +244,7 @@ def summary_markdown(cells: list[Cell]) -> str:
         "rho_dagger), averaged over the run's training episodes) are means over seeds. "
         f"95% CIs: bootstrap over seeds (scipy BCa, {N_RESAMPLES:,} resamples).\n"
     )
-    poi = improvement_rows(cells)
+    poi = stats.improvements
     if poi:
         lines += [
             "| task | P(PPO-RPE > rival) | score [95% CI] "
@@ -246,10 +265,10 @@ def summary_markdown(cells: list[Cell]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def summary_csv(cells: list[Cell]) -> str:
+def summary_csv(cells: list[Cell], stats: Statistics | None = None) -> str:
     """The summary table as CSV."""
     buf = io.StringIO()
-    rows = _table_rows(cells)
+    rows = _table_rows(cells) if stats is None else stats.rows
     writer = csv.DictWriter(
         buf, fieldnames=list(rows[0]) if rows else ["task"], lineterminator="\n"
     )
@@ -371,9 +390,9 @@ def verdict(low: float, high: float, n: tuple[int, int]) -> str:
     return f"cannot tell at {min(n)} seeds (the CI contains 0.5)"
 
 
-def claims_markdown(cells: list[Cell]) -> str:
+def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     """One line per claim, task and rival: the probability of improvement and the verdict."""
-    rows = improvement_rows(cells)
+    rows = improvement_rows(cells) if stats is None else stats.improvements
     lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] | verdict |",
              "| --- | --- | --- | :---: | --- |"]  # fmt: skip
     for stat, claim, tasks in CLAIMS:
@@ -393,15 +412,16 @@ def claims_markdown(cells: list[Cell]) -> str:
     return "\n".join(lines) + "\n\n" + legend + "\n"
 
 
-def _budget_lines(root: Path, cells: list[Cell]) -> list[str]:
-    grid = json.loads((root / "grid.json").read_text())
+def _run_budget(cfg: dict[str, Any]) -> Any:
+    """A run's length in its config: episodes or steps (online), total_steps (batch)."""
+    return cfg.get("episodes") or cfg.get("steps") or cfg.get("total_steps")
+
+
+def _budget_lines(grid: dict[str, Any], cells: list[Cell]) -> list[str]:
     lines = []
     for env in _envs(cells):
         runs = [r for r in grid["runs"] if r["env"] == env]
-        def budget(cfg: dict[str, Any]) -> Any:  # online: episodes or steps; batch: total_steps
-            return cfg.get("episodes") or cfg.get("steps") or cfg.get("total_steps")
-
-        budgets = sorted({budget(r["config"]) for r in runs}, key=str)
+        budgets = sorted({_run_budget(r["config"]) for r in runs}, key=str)
         unit = "episodes" if runs and runs[0]["config"].get("episodes") else "steps"
         here = [c for c in cells if c.env == env]
         done = sum(len(c.curves) for c in here)
@@ -414,9 +434,10 @@ def _budget_lines(root: Path, cells: list[Cell]) -> list[str]:
     return lines
 
 
-def report_markdown(root: Path, cells: list[Cell]) -> str:
+def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = None) -> str:
     """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
     and the folder's hand-written ``notes.md`` (if any) at the top."""
+    stats = statistics(cells) if stats is None else stats
     grid = json.loads((root / "grid.json").read_text())
     notes = root / "notes.md"
     parts = [f"# Report: grid {grid.get('name', root.name)!r}\n"]
@@ -424,11 +445,11 @@ def report_markdown(root: Path, cells: list[Cell]) -> str:
         parts.append(notes.read_text().strip() + "\n")
     parts += [
         "## What ran\n",
-        "\n".join(_budget_lines(root, cells)) + "\n",
+        "\n".join(_budget_lines(grid, cells)) + "\n",
         "## Scores, early learning, regularisation\n",
-        summary_markdown(cells),
+        summary_markdown(cells, stats),
         "## The paper's claims against these data\n",
-        claims_markdown(cells),
+        claims_markdown(cells, stats),
         "## Figures\n",
         "- Test scores per seed and their mean: ![summary](fig_summary.png)\n"
         "- Learning curves (mean over seeds, 95% band): ![learning](fig_learning.png)\n"
@@ -445,10 +466,11 @@ def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
         raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
     root = Path(out)
     cells = load_results(root)
+    stats = statistics(cells)  # once for the three files
     written = [
-        atomic_write_text(root / "REPORT.md", report_markdown(root, cells)),
-        atomic_write_text(root / "summary.md", summary_markdown(cells)),
-        atomic_write_text(root / "summary.csv", summary_csv(cells)),
+        atomic_write_text(root / "REPORT.md", report_markdown(root, cells, stats)),
+        atomic_write_text(root / "summary.md", summary_markdown(cells, stats)),
+        atomic_write_text(root / "summary.csv", summary_csv(cells, stats)),
     ]
     figures = {
         "fig_summary": _summary_figure(cells),

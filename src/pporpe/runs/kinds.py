@@ -207,7 +207,7 @@ def register_kind(kind: LearnerKind) -> LearnerKind:
 
 def _load_builtins() -> None:
     for name, module in _BUILTIN.items():
-        if not isinstance(name, str) or name not in _KINDS:
+        if name not in _KINDS:
             importlib.import_module(module)  # the module registers its kind
 
 
