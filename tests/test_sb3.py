@@ -111,6 +111,7 @@ def test_save_and_load_keep_the_surrogate(tmp_path: Path) -> None:
         ({"eta": float("inf")}, r"`eta`"),
         ({"rpe_beta": 1.5}, r"`rpe_beta` must be a number in \[0, 1\]; got 1.5"),
         ({"clip_range": 1.2}, r"`clip_range` \(the paper's eps\) must be in \(0, 1\)"),
+        ({"clip_range": "0.2"}, r"`clip_range` \(the paper's eps\) must be in \(0, 1\)"),
         ({"surrogate": "rpe", "rpe_beta": 0.95, "clip_range": 0.1}, r"rpe_beta must be < 0.909"),
     ],
 )
