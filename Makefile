@@ -10,7 +10,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip install -c constraints.txt
 OUT    ?= results
 
-.PHONY: reproduce reproduce-paper test lint install install-dev bench bench-sb3 clean
+.PHONY: reproduce reproduce-paper reproduce-paper-full test lint install install-dev bench bench-sb3 clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,11 @@ reproduce: $(VENV)/.installed
 ## One chunk at a time: make reproduce-paper ARGS="--tasks halfcheetah" (README: times per task).
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report $(ARGS)
+
+## The same grid at the author's full lengths (HalfCheetah and Ant 2000 episodes, about 9-10
+## hours per task on 2 cores): resumable, into results/paper-full (not committed).
+reproduce-paper-full: $(VENV)/.installed
+	$(VENV)/bin/pporpe reproduce experiments/paper-full.toml --out $(OUT)/paper-full --report $(ARGS)
 
 ## Benchmarks (long): throughput, learning quality, and the batch trainer against SB3.
 bench: bench-sb3

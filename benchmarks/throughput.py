@@ -8,7 +8,7 @@ It measures, in alternating rounds so that machine noise hits every variant alik
   the scalar reference learner (pporpe 0.2.0's single-run learner, kept in
   tests/reference_online.py) and the population learner at K = 1, 4, 15, 30, 60
   (compiled update); as member-steps/s and as the ratio to the task's env step;
-* the estimated wall time of experiments/paper.toml on this machine from those rates.
+* the estimated wall time of experiments/paper-full.toml on this machine from those rates.
 
     python benchmarks/throughput.py [--steps 150] [--rounds 3] [--ks 1 4 15 30 60]
                                     [--workers 2] [--out FILE]
@@ -116,9 +116,9 @@ class ReferenceBench:
 def paper_estimate(
     env_s: dict[str, float], learner_s: dict[str, float], workers: int, k: int
 ) -> dict[str, Any]:
-    """Wall time of experiments/paper.toml from per-step costs (an upper bound: episodes
+    """Wall time of experiments/paper-full.toml from per-step costs (an upper bound: episodes
     that end before the time limit are shorter)."""
-    spec = load_spec(HERE.parent / "experiments" / "paper.toml")
+    spec = load_spec(HERE.parent / "experiments" / "paper-full.toml")
     per_task: dict[str, dict[str, float]] = {}
     for run in spec.runs:
         cfg = run.config
@@ -218,7 +218,7 @@ def main() -> None:
     learner_s = {t: statistics.median(cost_rounds[(t, f"K={args.k}")]) for t in TASKS}
     est = paper_estimate(env_s, learner_s, args.workers, args.k)
     print()
-    print("estimated wall time of experiments/paper.toml on this machine:")
+    print("estimated wall time of experiments/paper-full.toml on this machine:")
     print("  " + est["formula"])
     for task, row in est["per_task"].items():
         steps = row["member_steps"] / row["runs"]

@@ -57,9 +57,14 @@ def test_repository_specs_parse() -> None:
     assert len(paper.runs) == 3 * 4 * 10
     assert paper.methods == ["ppo", "rb", "rpe"]
     assert paper.envs == ["pendulum", "swingup", "halfcheetah", "ant"]
-    by_env = {r.env: r.config for r in paper.runs}
-    assert by_env["pendulum"].episodes == 200 and by_env["ant"].episodes == 2000
+    assert {r.config.episodes for r in paper.runs} == {200}
     assert all(r.config.eval_episodes == 50 for r in paper.runs)
+    # The full-length spec is the same grid with HalfCheetah and Ant at 2000 episodes.
+    full = load_spec(ROOT / "experiments" / "paper-full.toml")
+    assert [r.key for r in full.runs] == [r.key for r in paper.runs]
+    for a, b in zip(paper.runs, full.runs, strict=True):
+        long = a.env in ("halfcheetah", "ant")
+        assert b.config == (replace(a.config, episodes=2000) if long else a.config)
     quick = load_spec(ROOT / "experiments" / "quick.toml")
     assert set(quick.methods) == {"ppo", "rb", "rpe"} and len(quick.runs) < len(paper.runs)
 

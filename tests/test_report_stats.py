@@ -23,6 +23,12 @@ from pporpe.runs.logger import EpisodeRecord, records_to_csv
 SCORES = {"rpe": [10.0, 20.0, 30.0, 100.0], "ppo": [0.0, 5.0, 40.0, 50.0]}
 EARLY = {"rpe": [1.0, 2.0, 3.0, 4.0], "ppo": [1.0, 1.0, 1.0, 1.0]}
 REG = {"rpe": [0.2, 0.3, 0.4, 0.5], "ppo": [0.0, 0.0, 0.1, 0.1]}
+# Per method, (first 50 episodes, last 10) of the share of updates past the threshold and of
+# mean abs(rho - 1). The first 50 episodes have 10 steps, the last 10 have 40: weighted by
+# updates, ppo's share is 400 * 0.09 / 900 = 4%, rpe's 500 * 0.009 / 900 = 0.5%, and the
+# mean abs(rho - 1) is 500 * 0.018 / 900 = 1% (ppo) and 400 * 0.0045 / 900 = 0.2% (rpe).
+PAST = {"ppo": (0.0, 0.09), "rpe": (0.009, 0.0)}
+RATIO_DEV = {"ppo": (0.018, 0.0), "rpe": (0.0, 0.0045)}
 
 
 def test_hand_worked_statistics() -> None:
@@ -69,11 +75,11 @@ def write_fixture(root: Path) -> None:
                     episode=e,
                     total_steps=10 * (e + 1),
                     ret=EARLY[method][seed] if e < 50 else 1000.0,  # later episodes differ
-                    length=10,
+                    length=10 if e < 50 else 40,
                     reg_amount=REG[method][seed],
-                    past_threshold=0.0,
+                    past_threshold=PAST[method][e >= 50],
                     trace_decay=0.5,
-                    ratio_dev=0.0,
+                    ratio_dev=RATIO_DEV[method][e >= 50],
                     wall_time=float(e),
                 )
                 for e in range(60)
@@ -106,6 +112,10 @@ def test_report_tables_and_verdicts_match_hand_computation(tmp_path: Path) -> No
     assert cells[6].startswith("0.350 [")  # regularisation: mean(0.2 .. 0.5)
     ppo_row = next(line for line in summary.splitlines() if line.startswith("| pendulum | PPO |"))
     assert "| 1.0 [1.0, 1.0] |" in ppo_row  # every PPO seed's first 50 returns are 1
+    # Updates past the threshold and abs(rho - 1), in %, weighted by updates (all seeds equal).
+    moves = [line for line in summary.splitlines() if line.count("|") == 5]
+    assert "| pendulum | PPO | 4.00 [4.00, 4.00] | 1.00 [1.00, 1.00] |" in moves
+    assert "| pendulum | PPO-RPE | 0.50 [0.50, 0.50] | 0.20 [0.20, 0.20] |" in moves
     poi_row = next(line for line in summary.splitlines() if "| vs PPO |" in line)
     poi = [c.strip() for c in poi_row.split("|")[1:-1]]
     assert poi[2].startswith("0.62 [")  # 10 of 16 pairs

@@ -9,7 +9,9 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``;
 * ``summary.md`` / ``summary.csv``: per task and method, over seeds of the per-seed
   median test score: the mean and the IQM with bootstrap 95% CIs (:mod:`.stats`; the CSV
   also has the Student-t interval), the mean return of the first 50 training episodes, the
-  mean regularisation amount; then P(PPO-RPE > rival) for each of them;
+  mean regularisation amount; how often the ratio was past the threshold and how far it
+  was from 1 (how much the surrogates can differ); then P(PPO-RPE > rival) for the first
+  three;
 * ``fig_summary``: bar summary of the scores (the paper's Fig. 3, ``sim_summary``);
 * ``fig_learning``: learning curves per task, mean over seeds, 95% bands (Fig. 4, ``sim_learn``);
 * ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);
@@ -56,6 +58,7 @@ __all__ = [
     "mean_ci",
     "mean_regularization",
     "statistics",
+    "update_mean",
     "write_report",
 ]
 
@@ -125,6 +128,17 @@ def mean_regularization(records: list[EpisodeRecord]) -> float:
     return float(np.mean(vals)) if vals else math.nan
 
 
+def update_mean(records: list[EpisodeRecord], field: str) -> float:
+    """Mean over a run's updates of a per-episode mean ``field`` (``past_threshold``,
+    ``ratio_dev``, ``trace_decay``): episodes weighted by their length, since an online run
+    makes one update per step (NaN without any finite value)."""
+    pairs = [(getattr(r, field), r.length) for r in records]
+    pairs = [(v, n) for v, n in pairs if math.isfinite(v) and n > 0]
+    if not pairs:
+        return math.nan
+    return float(sum(v * n for v, n in pairs) / sum(n for _, n in pairs))
+
+
 def _finite(values: list[float]) -> list[float]:
     return [v for v in values if math.isfinite(v)]
 
@@ -153,6 +167,8 @@ def _table_rows(cells: list[Cell]) -> list[dict[str, Any]]:
             "iqm": _estimate(scores, iqm),
             "first50": _estimate([early_return(r) for r in c.curves.values()]),
             "reg": _estimate([mean_regularization(r) for r in c.curves.values()]),
+            "past": _estimate([update_mean(r, "past_threshold") for r in c.curves.values()]),
+            "ratio_dev": _estimate([update_mean(r, "ratio_dev") for r in c.curves.values()]),
         }
         for name, est in stats_of.items():
             for part in ("value", "low", "high"):
@@ -165,8 +181,8 @@ def _fmt(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.1f}"
 
 
-def _fmt_ci(row: dict[str, Any], name: str, digits: int = 1) -> str:
-    v, lo, hi = (row[f"{name}_{p}"] for p in ("value", "low", "high"))
+def _fmt_ci(row: dict[str, Any], name: str, digits: int = 1, scale: float = 1.0) -> str:
+    v, lo, hi = (scale * row[f"{name}_{p}"] for p in ("value", "low", "high"))
     if math.isnan(v):
         return "n/a"
     return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
@@ -243,6 +259,23 @@ def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
         "mean) over seeds; first-episodes return and regularisation (sigma*(rho - "
         "rho_dagger), averaged over the run's training episodes) are means over seeds. "
         f"95% CIs: bootstrap over seeds (scipy BCa, {N_RESAMPLES:,} resamples).\n"
+    )
+    lines += [
+        "| task | method | updates past the threshold, % [95% CI] "
+        "| mean abs(rho - 1) per update, % [95% CI] |",
+        "| --- | --- | :---: | :---: |",
+    ]
+    for r in stats.rows:
+        lines.append(
+            f"| {r['task']} | {r['method']} | {_fmt_ci(r, 'past', 2, 100.0)} | "
+            f"{_fmt_ci(r, 'ratio_dev', 2, 100.0)} |"
+        )
+    lines.append(
+        "\nHow much the three surrogates can differ: the share of a run's updates whose ratio "
+        "rho was past the threshold (where PPO's clip, PPO-RB's rollback or PPO-RPE's "
+        "stronger pull act) and the mean distance of rho from 1, both over all of the run's "
+        "updates, then averaged over seeds. Where rho stays near 1 the three objectives give "
+        "nearly the same gradient.\n"
     )
     poi = stats.improvements
     if poi:
