@@ -17,7 +17,7 @@ import pytest
 from pporpe.cli import main
 from pporpe.experiments.grid import load_spec, parse_spec
 from pporpe.experiments.report import mean_ci, write_report
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.reproduce import _Progress, episodes_logged, reproduce
 from pporpe.runs.logger import read_records
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -323,3 +323,26 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(30))
         assert got == records_of(ref, run.key)
+
+
+def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> None:
+    header = "episode,ret\n"
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    for d in (a, b, c):
+        d.mkdir()
+    (a / "episodes.csv").write_text(header + "0,1\n1,2\n2,3\n")
+    (b / "episodes.csv").write_text(header + "0,1\n")
+    (b / "done.json").write_text("{}")
+    assert episodes_logged(a, 10) == 3
+    assert episodes_logged(a, 2) == 2  # never more than the budget
+    assert episodes_logged(b, 10) == 10  # done: the whole budget
+    assert episodes_logged(c, 10) == 0  # no checkpoint yet
+    bar = _Progress(3, 0, [a, b, c], enabled=False, budgets=[10, 10, None])
+    assert bar.episodes_total == 20  # c has no episode budget
+    assert bar.count_episodes() == "13/20"  # the first count: no rate yet
+    bar.t_start -= 60.0  # a minute later, 7 more episodes: 7 left at 7 a minute
+    (a / "episodes.csv").write_text(header + "".join(f"{i},0\n" for i in range(10)))
+    assert bar.count_episodes() == "20/20"
+    (a / "episodes.csv").write_text(header + "0,0\n" * 4)
+    bar.episodes_start, bar.t_start = 13, bar.t_start - 60.0  # 1 episode in 2 minutes
+    assert bar.count_episodes() == "14/20, left~12 min"

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import math
 import os
 import signal
 import sys
@@ -210,28 +211,80 @@ def _worker_init() -> None:
         os.close(devnull)
 
 
+def episodes_logged(run_dir: Path, budget: int) -> int:
+    """Training episodes a run has on disk, out of ``budget``: all of them once it is done,
+    else the rows of its ``episodes.csv`` (written at each checkpoint), 0 before the first."""
+    if (run_dir / "done.json").exists():
+        return budget
+    try:
+        with open(run_dir / "episodes.csv", "rb") as f:
+            rows = sum(1 for _ in f) - 1  # the header
+    except OSError:
+        return 0
+    return max(0, min(rows, budget))
+
+
 class _Progress:
     """One overall progress bar: runs done (read from the run folders, so that runs
-    finishing inside a population count at once), failed, jobs running, time left."""
+    finishing inside a population count at once), failed, jobs running, and, for runs with
+    an episode budget, the episodes on disk with the time left at their rate (a population
+    finishes its runs together, so the run count alone stays at 0 for most of a task)."""
 
-    def __init__(self, total: int, done: int, runs: list[Path], enabled: bool) -> None:
+    COUNT_EVERY_S = 30.0
+    """Seconds between two counts of the runs' episodes (each reads every episodes.csv)."""
+
+    def __init__(
+        self,
+        total: int,
+        done: int,
+        runs: list[Path],
+        enabled: bool,
+        budgets: list[int | None] | None = None,
+    ) -> None:
         self.bar: Any = None
         self.initial, self.runs = done, runs
         self.failed = 0
+        self.episode_runs = [
+            (r, b) for r, b in zip(runs, budgets or [None] * len(runs), strict=True) if b
+        ]
+        self.episodes_total = sum(b for _, b in self.episode_runs)
+        self.episodes_start: int | None = None
+        self.t_start = time.perf_counter()
+        self.t_counted = -math.inf
+        self.episodes_text = ""
         if enabled:
             from tqdm import tqdm
 
             self.bar = tqdm(total=total, initial=done, unit="run", desc="grid", dynamic_ncols=True)
 
+    def count_episodes(self) -> str:
+        """``"episodes=N/M, left~T"``: episodes on disk and the time left at their rate."""
+        n = sum(episodes_logged(r, b) for r, b in self.episode_runs)
+        now = time.perf_counter()
+        if self.episodes_start is None:
+            self.episodes_start, self.t_start = n, now
+        text = f"{n}/{self.episodes_total}"
+        gained, elapsed = n - self.episodes_start, now - self.t_start
+        if gained > 0 and n < self.episodes_total:
+            left = (self.episodes_total - n) * elapsed / gained
+            text += f", left~{left / 60:.0f} min"
+        return text
+
     def poll(self, jobs_running: int, results: list[dict[str, Any]]) -> None:
         """Count finished runs on disk and failed ones in the jobs' results; show the jobs
-        still running."""
+        still running and, every half minute, the episodes on disk."""
         if self.bar is None:
             return
         done = sum((r / "done.json").exists() for r in self.runs)
         self.failed = sum(res["status"] != "done" for res in results)
         self.bar.n = self.initial + done + self.failed
-        self.bar.set_postfix(jobs=jobs_running, failed=self.failed)
+        if self.episode_runs and time.perf_counter() - self.t_counted >= self.COUNT_EVERY_S:
+            self.episodes_text = self.count_episodes()
+            self.t_counted = time.perf_counter()
+        postfix: dict[str, Any] = {"jobs": jobs_running, "failed": self.failed}
+        if self.episodes_text:
+            postfix["episodes"] = self.episodes_text
+        self.bar.set_postfix(postfix)
         self.bar.refresh()
 
     def close(self) -> None:
@@ -364,7 +417,8 @@ def reproduce(
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
 
-    bar = _Progress(len(spec.runs), len(skipped), [d for d, _ in todo], progress)
+    budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
+    bar = _Progress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
     try:
         if not jobs:
             results: list[dict[str, Any]] = []
