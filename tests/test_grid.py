@@ -340,9 +340,11 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     bar = _Progress(3, 0, [a, b, c], enabled=False, budgets=[10, 10, None])
     assert bar.episodes_total == 20  # c has no episode budget
     assert bar.count_episodes() == "13/20"  # the first count: no rate yet
-    bar.t_start -= 60.0  # a minute later, 7 more episodes: 7 left at 7 a minute
+    (a / "episodes.csv").write_text(header + "0,0\n" * 4)
+    bar.history[0] = (bar.history[0][0] - 120.0, 13)  # one episode in two minutes
+    assert bar.count_episodes() == "14/20, left~12 min"
+    # The rate is that of the last RATE_COUNTS counts: old, faster progress is forgotten.
+    bar.history = [(0.0, 0)] + [(bar.history[-1][0], 14)] * (bar.RATE_COUNTS - 1)
+    assert bar.count_episodes() == "14/20"  # nothing gained within the window
     (a / "episodes.csv").write_text(header + "".join(f"{i},0\n" for i in range(10)))
     assert bar.count_episodes() == "20/20"
-    (a / "episodes.csv").write_text(header + "0,0\n" * 4)
-    bar.episodes_start, bar.t_start = 13, bar.t_start - 60.0  # 1 episode in 2 minutes
-    assert bar.count_episodes() == "14/20, left~12 min"

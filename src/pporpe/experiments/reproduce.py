@@ -232,6 +232,8 @@ class _Progress:
 
     COUNT_EVERY_S = 30.0
     """Seconds between two counts of the runs' episodes (each reads every episodes.csv)."""
+    RATE_COUNTS = 10
+    """Counts (the last five minutes) whose rate gives the time left."""
 
     def __init__(
         self,
@@ -248,8 +250,7 @@ class _Progress:
             (r, b) for r, b in zip(runs, budgets or [None] * len(runs), strict=True) if b
         ]
         self.episodes_total = sum(b for _, b in self.episode_runs)
-        self.episodes_start: int | None = None
-        self.t_start = time.perf_counter()
+        self.history: list[tuple[float, int]] = []
         self.t_counted = -math.inf
         self.episodes_text = ""
         if enabled:
@@ -258,15 +259,17 @@ class _Progress:
             self.bar = tqdm(total=total, initial=done, unit="run", desc="grid", dynamic_ncols=True)
 
     def count_episodes(self) -> str:
-        """``"episodes=N/M, left~T"``: episodes on disk and the time left at their rate."""
+        """``"N/M, left~T min"``: episodes on disk and the time left at the rate of the last
+        few counts (episodes grow longer as runs learn, so the recent rate is the better
+        guess)."""
         n = sum(episodes_logged(r, b) for r, b in self.episode_runs)
         now = time.perf_counter()
-        if self.episodes_start is None:
-            self.episodes_start, self.t_start = n, now
+        self.history = [*self.history[-(self.RATE_COUNTS - 1) :], (now, n)]
         text = f"{n}/{self.episodes_total}"
-        gained, elapsed = n - self.episodes_start, now - self.t_start
+        t0, n0 = self.history[0]
+        gained = n - n0
         if gained > 0 and n < self.episodes_total:
-            left = (self.episodes_total - n) * elapsed / gained
+            left = (self.episodes_total - n) * (now - t0) / gained
             text += f", left~{left / 60:.0f} min"
         return text
 
