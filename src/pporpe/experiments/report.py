@@ -227,7 +227,8 @@ class Statistics:
     """Every statistic a report prints, computed once (the bootstraps are the slow part)."""
 
     rows: list[dict[str, Any]]
-    """Per task and method: scores, early learning, regularisation (``summary.csv``)."""
+    """Per task and method: scores, early learning, regularisation, updates past the
+    threshold and abs(rho - 1) (``summary.csv``)."""
     improvements: list[dict[str, Any]]
     """Per task and rival: the probabilities of improvement of PPO-RPE."""
 
@@ -239,8 +240,9 @@ def statistics(cells: list[Cell]) -> Statistics:
 
 def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     """The summary tables as Markdown: scores, early learning and regularisation per task
-    and method, then the probabilities of improvement of PPO-RPE over each rival
-    (``stats``: already computed :func:`statistics` of ``cells``)."""
+    and method; the share of updates past the threshold and abs(rho - 1); then the
+    probabilities of improvement of PPO-RPE over each rival (``stats``: already computed
+    :func:`statistics` of ``cells``)."""
     stats = statistics(cells) if stats is None else stats
     lines = [
         "| task | method | seeds | mean score [95% CI] | IQM [95% CI] "
