@@ -17,7 +17,14 @@ import pytest
 from pporpe.cli import main
 from pporpe.experiments.grid import load_spec, parse_spec
 from pporpe.experiments.report import mean_ci, write_report
-from pporpe.experiments.reproduce import _Progress, episodes_logged, reproduce
+from pporpe.experiments.reproduce import (
+    RECENT_EPISODES,
+    RunProgress,
+    _Progress,
+    episodes_logged,
+    reproduce,
+    run_progress,
+)
 from pporpe.runs.logger import read_records
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -326,25 +333,42 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
 
 
 def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> None:
-    header = "episode,ret\n"
-    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
-    for d in (a, b, c):
-        d.mkdir()
-    (a / "episodes.csv").write_text(header + "0,1\n1,2\n2,3\n")
-    (b / "episodes.csv").write_text(header + "0,1\n")
+    header = "episode,total_steps,ret,length\n"
+
+    def rows(lengths: list[int]) -> str:
+        steps = [sum(lengths[: i + 1]) for i in range(len(lengths))]
+        return "".join(f"{i},{s},0,{n}\n" for i, (s, n) in enumerate(zip(steps, lengths)))
+
+    a, b, c, d = (tmp_path / x for x in "abcd")
+    for folder in (a, b, c, d):
+        folder.mkdir()
+    (a / "episodes.csv").write_text(header + rows([10, 20, 30]))
+    (b / "episodes.csv").write_text(header + rows([5]))
     (b / "done.json").write_text("{}")
-    assert episodes_logged(a, 10) == 3
+    # 7 episodes left at the mean length of the recent ones, (10 + 20 + 30) / 3.
+    assert run_progress(a, 10) == RunProgress(3, 60, 140.0)
+    assert run_progress(b, 10) == RunProgress(10, 5, 0.0)  # done: the whole budget
+    assert run_progress(d, 10) == RunProgress(0, 0, None)  # no checkpoint yet
     assert episodes_logged(a, 2) == 2  # never more than the budget
-    assert episodes_logged(b, 10) == 10  # done: the whole budget
-    assert episodes_logged(c, 10) == 0  # no checkpoint yet
-    bar = _Progress(3, 0, [a, b, c], enabled=False, budgets=[10, 10, None])
-    assert bar.episodes_total == 20  # c has no episode budget
-    assert bar.count_episodes() == "13/20"  # the first count: no rate yet
-    (a / "episodes.csv").write_text(header + "0,0\n" * 4)
-    bar.history[0] = (bar.history[0][0] - 120.0, 13)  # one episode in two minutes
-    assert bar.count_episodes() == "14/20, left~12 min"
+    many = list(range(1, 16))  # the mean of the last RECENT_EPISODES lengths only
+    (c / "episodes.csv").write_text(header + rows(many))
+    recent = many[-RECENT_EPISODES:]
+    assert run_progress(c, 20).steps_left == 5 * sum(recent) / len(recent)
+    # Without the step columns every episode counts as one step.
+    (c / "episodes.csv").write_text("episode,ret\n0,1\n1,2\n")
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
+
+    bar = _Progress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
+    assert bar.episodes_total == 30  # c has no episode budget
+    assert bar.count_episodes() == "13/30"  # the first count: no rate yet
+    (a / "episodes.csv").write_text(header + rows([10, 20, 30, 40]))
+    bar.history[0] = (bar.history[0][0] - 120.0, 65)  # 40 steps in two minutes
+    # Steps left: a 6 * 25 = 150, b 0, d guessed at the mean of the others (75): 225 steps
+    # at 40 / 120 s is 11.25 min. (The episode rate would say 16 episodes in 32 min.)
+    assert bar.count_episodes() == "14/30, left~11 min"
     # The rate is that of the last RATE_COUNTS counts: old, faster progress is forgotten.
-    bar.history = [(0.0, 0)] + [(bar.history[-1][0], 14)] * (bar.RATE_COUNTS - 1)
-    assert bar.count_episodes() == "14/20"  # nothing gained within the window
-    (a / "episodes.csv").write_text(header + "".join(f"{i},0\n" for i in range(10)))
-    assert bar.count_episodes() == "20/20"
+    bar.history = [(0.0, 0)] + [(bar.history[-1][0], 105)] * (bar.RATE_COUNTS - 1)
+    assert bar.count_episodes() == "14/30"  # nothing gained within the window
+    (a / "episodes.csv").write_text(header + rows([1] * 10))
+    (d / "done.json").write_text("{}")
+    assert bar.count_episodes() == "30/30"

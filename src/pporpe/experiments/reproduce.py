@@ -211,17 +211,56 @@ def _worker_init() -> None:
         os.close(devnull)
 
 
+@dataclass(frozen=True)
+class RunProgress:
+    """What a run has on disk, as the progress bar reads it."""
+
+    episodes: int
+    """Training episodes logged, at most the budget (all of it once the run is done)."""
+    steps: int
+    """Environment steps of the logged episodes (the last row's ``total_steps``)."""
+    steps_left: float | None
+    """Guess of the steps still to run: the episodes left times the mean length of the last
+    :data:`RECENT_EPISODES` logged; 0 once done; ``None`` before the first checkpoint."""
+
+
+RECENT_EPISODES = 10
+"""Logged episodes whose mean length stands for the length of the episodes to come."""
+
+
+def run_progress(run_dir: Path, budget: int) -> RunProgress:
+    """Read a run's ``episodes.csv`` (written at each checkpoint) for the progress bar.
+
+    Episodes grow longer as a run learns (Ant's and HalfCheetah's from 20 steps to 1000),
+    so the time left is estimated in environment steps, not in episodes. A file without
+    the ``total_steps`` and ``length`` columns counts every episode as one step.
+    """
+    done = (run_dir / "done.json").exists()
+    try:
+        with open(run_dir / "episodes.csv", encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return RunProgress(budget if done else 0, 0, 0.0 if done else None)
+    header, rows = lines[0].split(",") if lines else [], [ln for ln in lines[1:] if ln]
+    n = min(len(rows), budget)
+    if not rows:
+        return RunProgress(budget if done else 0, 0, 0.0 if done else None)
+    if "total_steps" in header and "length" in header:
+        i_steps, i_len = header.index("total_steps"), header.index("length")
+        steps = int(float(rows[-1].split(",")[i_steps]))
+        recent = [float(r.split(",")[i_len]) for r in rows[-RECENT_EPISODES:]]
+        length = sum(recent) / len(recent)
+    else:
+        steps, length = len(rows), 1.0
+    if done:
+        return RunProgress(budget, steps, 0.0)
+    return RunProgress(n, steps, (budget - n) * length)
+
+
 def episodes_logged(run_dir: Path, budget: int) -> int:
     """Training episodes a run has on disk, out of ``budget``: all of them once it is done,
     else the rows of its ``episodes.csv`` (written at each checkpoint), 0 before the first."""
-    if (run_dir / "done.json").exists():
-        return budget
-    try:
-        with open(run_dir / "episodes.csv", "rb") as f:
-            rows = sum(1 for _ in f) - 1  # the header
-    except OSError:
-        return 0
-    return max(0, min(rows, budget))
+    return run_progress(run_dir, budget).episodes
 
 
 class _Progress:
@@ -259,17 +298,22 @@ class _Progress:
             self.bar = tqdm(total=total, initial=done, unit="run", desc="grid", dynamic_ncols=True)
 
     def count_episodes(self) -> str:
-        """``"N/M, left~T min"``: episodes on disk and the time left at the rate of the last
-        few counts (episodes grow longer as runs learn, so the recent rate is the better
-        guess)."""
-        n = sum(episodes_logged(r, b) for r, b in self.episode_runs)
+        """``"N/M, left~T min"``: episodes on disk and the time left, the steps still to run
+        (:func:`run_progress`) at the step rate of the last few counts. Episodes grow longer
+        as runs learn, so neither the episode rate nor an old step rate is a good guess."""
+        progress = [run_progress(r, b) for r, b in self.episode_runs]
+        n = sum(p.episodes for p in progress)
+        steps = sum(p.steps for p in progress)
         now = time.perf_counter()
-        self.history = [*self.history[-(self.RATE_COUNTS - 1) :], (now, n)]
+        self.history = [*self.history[-(self.RATE_COUNTS - 1) :], (now, steps)]
         text = f"{n}/{self.episodes_total}"
-        t0, n0 = self.history[0]
-        gained = n - n0
-        if gained > 0 and n < self.episodes_total:
-            left = (self.episodes_total - n) * (now - t0) / gained
+        t0, steps0 = self.history[0]
+        gained = steps - steps0
+        known = [p.steps_left for p in progress if p.steps_left is not None]
+        if gained > 0 and n < self.episodes_total and known:
+            # A run without a checkpoint yet is guessed at the mean of the others.
+            steps_left = sum(known) * len(progress) / len(known)
+            left = steps_left * (now - t0) / gained
             text += f", left~{left / 60:.0f} min"
         return text
 
