@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pporpe.cli import main
-from pporpe.io import atomic_path, atomic_write_json
+from pporpe.io import atomic_path, atomic_savefig, atomic_write_json
 
 
 def test_figures_command_writes_png_and_pdf(
@@ -56,3 +56,21 @@ def test_atomic_write_replaces_whole_file(tmp_path: Path) -> None:
         raise RuntimeError("crash mid-write")
     assert json.loads(target.read_text()) == {"a": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temporary left behind
+
+
+@pytest.mark.parametrize(("ext", "date_mark"), [("pdf", b"/CreationDate"), ("png", None)])
+def test_saved_figures_carry_no_date_so_the_same_figure_gives_the_same_bytes(
+    tmp_path: Path, ext: str, date_mark: bytes | None
+) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1, 2], [1, 0, 2])
+    first = atomic_savefig(fig, tmp_path / f"a.{ext}").read_bytes()
+    second = atomic_savefig(fig, tmp_path / f"b.{ext}").read_bytes()
+    assert first == second
+    if date_mark is not None:
+        assert date_mark not in first  # matplotlib writes the save time there by default
+        dated = atomic_savefig(fig, tmp_path / f"c.{ext}", metadata={}).read_bytes()
+        assert date_mark in dated  # an explicit metadata argument is left to the caller
+    plt.close(fig)

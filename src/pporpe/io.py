@@ -58,9 +58,16 @@ def atomic_write_json(path: str | Path, obj: Any) -> Path:
 
 
 def atomic_savefig(fig: Any, path: str | Path, **kwargs: Any) -> Path:
-    """Save a matplotlib figure atomically, in the format given by the path's suffix."""
+    """Save a matplotlib figure atomically, in the format given by the path's suffix.
+
+    A PDF gets no creation date (unless ``metadata`` says otherwise; PNG has none), so the
+    same figure gives the same bytes: a regenerated report changes in git only where its
+    data did.
+    """
     target = Path(path)
     fmt = target.suffix.lstrip(".")
+    if fmt == "pdf":
+        kwargs.setdefault("metadata", {"CreationDate": None})
     with atomic_path(target) as tmp:
         fig.savefig(tmp, format=fmt, dpi=kwargs.pop("dpi", 150), bbox_inches="tight", **kwargs)
     return target
