@@ -357,6 +357,8 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     # Without the step columns every episode counts as one step.
     (c / "episodes.csv").write_text("episode,ret\n0,1\n1,2\n")
     assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
+    (c / "episodes.csv").write_text(header + "0,10,0,10\n1,x,0\n")  # edited by hand
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
 
     bar = _Progress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
     assert bar.episodes_total == 30  # c has no episode budget

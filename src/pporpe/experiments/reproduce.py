@@ -233,7 +233,8 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
 
     Episodes grow longer as a run learns (Ant's and HalfCheetah's from 20 steps to 1000),
     so the time left is estimated in environment steps, not in episodes. A file without
-    the ``total_steps`` and ``length`` columns counts every episode as one step.
+    the ``total_steps`` and ``length`` columns, or with values that are not numbers, counts
+    every episode as one step.
     """
     done = (run_dir / "done.json").exists()
     try:
@@ -245,13 +246,13 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
     n = min(len(rows), budget)
     if not rows:
         return RunProgress(budget if done else 0, 0, 0.0 if done else None)
+    steps, length = len(rows), 1.0
     if "total_steps" in header and "length" in header:
         i_steps, i_len = header.index("total_steps"), header.index("length")
-        steps = int(float(rows[-1].split(",")[i_steps]))
-        recent = [float(r.split(",")[i_len]) for r in rows[-RECENT_EPISODES:]]
-        length = sum(recent) / len(recent)
-    else:
-        steps, length = len(rows), 1.0
+        # A file someone edited by hand must not stop the grid: count its rows instead.
+        with contextlib.suppress(ValueError, IndexError):
+            recent = [float(r.split(",")[i_len]) for r in rows[-RECENT_EPISODES:]]
+            steps, length = int(float(rows[-1].split(",")[i_steps])), sum(recent) / len(recent)
     if done:
         return RunProgress(budget, steps, 0.0)
     return RunProgress(n, steps, (budget - n) * length)
