@@ -21,7 +21,6 @@ from pporpe.experiments.reproduce import (
     RECENT_EPISODES,
     RunProgress,
     _Progress,
-    episodes_logged,
     reproduce,
     run_progress,
 )
@@ -349,7 +348,7 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     assert run_progress(a, 10) == RunProgress(3, 60, 140.0)
     assert run_progress(b, 10) == RunProgress(10, 5, 0.0)  # done: the whole budget
     assert run_progress(d, 10) == RunProgress(0, 0, None)  # no checkpoint yet
-    assert episodes_logged(a, 2) == 2  # never more than the budget
+    assert run_progress(a, 2).episodes == 2  # never more than the budget
     many = list(range(1, 16))  # the mean of the last RECENT_EPISODES lengths only
     (c / "episodes.csv").write_text(header + rows(many))
     recent = many[-RECENT_EPISODES:]

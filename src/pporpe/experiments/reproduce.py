@@ -234,18 +234,20 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
     Episodes grow longer as a run learns (Ant's and HalfCheetah's from 20 steps to 1000),
     so the time left is estimated in environment steps, not in episodes. A file without
     the ``total_steps`` and ``length`` columns, or with values that are not numbers, counts
-    every episode as one step.
+    every episode as one step. Only the last rows are parsed: this runs every half minute
+    over every run of a grid, and :func:`pporpe.runs.logger.read_records` costs about 20 us
+    a row (a second per count for 30 runs of 2000 episodes).
     """
     done = (run_dir / "done.json").exists()
     try:
         with open(run_dir / "episodes.csv", encoding="utf-8") as f:
             lines = f.read().splitlines()
     except OSError:
-        return RunProgress(budget if done else 0, 0, 0.0 if done else None)
-    header, rows = lines[0].split(",") if lines else [], [ln for ln in lines[1:] if ln]
-    n = min(len(rows), budget)
+        lines = []
+    rows = [ln for ln in lines[1:] if ln]
     if not rows:
-        return RunProgress(budget if done else 0, 0, 0.0 if done else None)
+        return RunProgress(budget, 0, 0.0) if done else RunProgress(0, 0, None)
+    header, n = lines[0].split(","), min(len(rows), budget)
     steps, length = len(rows), 1.0
     if "total_steps" in header and "length" in header:
         i_steps, i_len = header.index("total_steps"), header.index("length")
@@ -256,12 +258,6 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
     if done:
         return RunProgress(budget, steps, 0.0)
     return RunProgress(n, steps, (budget - n) * length)
-
-
-def episodes_logged(run_dir: Path, budget: int) -> int:
-    """Training episodes a run has on disk, out of ``budget``: all of them once it is done,
-    else the rows of its ``episodes.csv`` (written at each checkpoint), 0 before the first."""
-    return run_progress(run_dir, budget).episodes
 
 
 class _Progress:
