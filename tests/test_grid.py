@@ -358,6 +358,8 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
     (c / "episodes.csv").write_text(header + "0,10,0,10\n1,x,0\n")  # edited by hand
     assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
+    (c / "episodes.csv").write_bytes(header.encode() + b"0,10,0,10\n\xff\xfe,1\n")  # not UTF-8
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
 
     bar = _Progress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
     assert bar.episodes_total == 30  # c has no episode budget

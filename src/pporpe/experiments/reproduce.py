@@ -240,7 +240,7 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
     """
     done = (run_dir / "done.json").exists()
     try:
-        with open(run_dir / "episodes.csv", encoding="utf-8") as f:
+        with open(run_dir / "episodes.csv", encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()
     except OSError:
         lines = []
