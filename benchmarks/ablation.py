@@ -9,7 +9,10 @@ resume). It prints, per variant, task and method:
 * the mean and the interquartile mean (IQM) of the per-seed score (median of the test
   episodes), each with a bootstrap 95% CI (scipy.stats.bootstrap, BCa, 10,000 resamples);
 * the mean return of the first 50 training episodes (early learning), with its CI;
-* the number of seeds whose score reaches 950 (pendulum) or 800 (swingup).
+* the number of seeds whose score reaches 950 (pendulum) or 800 (swingup);
+* per variant and task, the probability that a run of the variant scores above a run of
+  the baseline, P(variant > baseline), over the three methods' 30 runs pooled (a choice is
+  the same for the three methods), with a bootstrap 95% CI (Agarwal et al. 2021).
 
 The compute is large (Swingup's episodes are always 1000 steps), so the benchmark runs in
 chunks: choose them with ``--variants`` and ``--tasks``; finished runs are skipped when
@@ -35,7 +38,7 @@ from _common import write_json
 from pporpe.evaluation import load_evaluation
 from pporpe.experiments.grid import parse_spec
 from pporpe.experiments.reproduce import reproduce
-from pporpe.experiments.stats import bootstrap_ci, iqm
+from pporpe.experiments.stats import bootstrap_ci, iqm, probability_of_improvement_ci
 from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES
 from pporpe.runs.logger import read_records
 
@@ -111,6 +114,37 @@ def summarize(out: Path, variants: list[str], tasks: list[str]) -> list[dict[str
     return rows
 
 
+def versus_baseline(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """P(variant > baseline) per variant and task, the methods' runs pooled, with its CI.
+
+    Only for variants whose three methods and the baseline's have all finished on the task.
+    """
+    pooled: dict[tuple[str, str], list[float]] = {}
+    methods: dict[tuple[str, str], set[str]] = {}
+    for r in rows:
+        key = (r["variant"], r["task"])
+        pooled.setdefault(key, []).extend(r["scores"])
+        methods.setdefault(key, set()).add(r["method"])
+    out = []
+    for (variant, task), scores in pooled.items():
+        base = ("baseline", task)
+        if variant == "baseline" or base not in pooled:
+            continue
+        if methods[(variant, task)] != set(METHODS) or methods[base] != set(METHODS):
+            continue
+        p = probability_of_improvement_ci(scores, pooled[base])
+        out.append(
+            {
+                "variant": variant,
+                "task": task,
+                "runs": len(scores),
+                "baseline_runs": len(pooled[base]),
+                "p_above_baseline": p.as_dict(),
+            }
+        )
+    return out
+
+
 def fmt(ci: dict[str, float]) -> str:
     return f"{ci['value']:7.1f} [{ci['low']:7.1f}, {ci['high']:7.1f}]"
 
@@ -153,7 +187,15 @@ def main() -> None:
             f"{fmt(r['mean']):>27s} {fmt(r['iqm']):>27s} {fmt(r['first50_mean_return']):>27s} "
             f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
         )
-    path = write_json(args.json, {"variants": VARIANTS, "rows": rows})
+    versus = versus_baseline(rows)
+    if versus:
+        print("\nP(variant > baseline), the three methods' runs pooled [95% CI]:")
+        for v in versus:
+            p = v["p_above_baseline"]
+            ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+            runs = f"({v['runs']} vs {v['baseline_runs']} runs)"
+            print(f"{v['variant']:11s} {v['task']:9s} {ci}  {runs}")
+    path = write_json(args.json, {"variants": VARIANTS, "rows": rows, "versus_baseline": versus})
     print(f"wrote {path}")
 
 
