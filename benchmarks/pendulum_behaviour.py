@@ -1,0 +1,113 @@
+"""What trained pendulum policies do: balance, or keep swinging.
+
+For each run folder of InvertedPendulum or Swingup (the two tasks whose observation is
+``[x, x_dot, cos(theta), sin(theta), theta_dot]``), it replays the trained policy
+deterministically for a few test episodes and prints, over the second half of each
+episode (after a swing-up has had time):
+
+* ``upright``: the fraction of steps with cos(theta) > 0.9 (the pole within about 26
+  degrees of vertical);
+* ``mean |a|`` and ``saturated``: the mean action magnitude and the fraction of steps with
+  ``|a| > 0.95`` (actions are in [-1, 1]);
+* ``turns``: full turns of the pole over the episode (a spinning pole scores about 0 on
+  Swingup's reward cos(theta));
+* the return of the episode.
+
+Values are means over the episodes; the table groups the runs by their parent folders
+(variant/task/method) and gives the mean over seeds. Example, the ablation's Swingup runs::
+
+    python benchmarks/pendulum_behaviour.py benchmarks/results/ablation/{baseline,all}/swingup
+
+The test environments are seeded with ``--seed`` plus the episode's index.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import write_json
+
+import pporpe
+from pporpe.envs import make_env
+
+TASKS = ("pendulum", "swingup")
+
+
+def behaviour(run: Path, episodes: int, seed: int) -> dict[str, Any]:
+    """The behaviour statistics of one run's deterministic policy, averaged over episodes."""
+    policy = pporpe.load_policy(run)
+    task = policy.config.env
+    if task not in TASKS:
+        raise ValueError(f"{run}: env must be one of {TASKS}; got {task!r}")
+    per_episode = []
+    env = make_env(task)
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i)
+        angles, actions, ret = [], [], 0.0
+        while True:
+            action = policy.act(obs)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            ret += float(reward)
+            angles.append(np.arctan2(obs[3], obs[2]))
+            actions.append(float(np.abs(action).max()))
+            if terminated or truncated:
+                break
+        theta = np.unwrap(np.asarray(angles))
+        a = np.asarray(actions)
+        half = len(theta) // 2
+        per_episode.append(
+            {
+                "upright": float(np.mean(np.cos(theta[half:]) > 0.9)),
+                "mean_abs_action": float(a[half:].mean()),
+                "saturated": float(np.mean(a[half:] > 0.95)),
+                "turns": float(abs(theta[-1] - theta[0]) / (2 * np.pi)),
+                "return": ret,
+                "length": len(theta),
+            }
+        )
+    env.close()
+    keys = per_episode[0].keys()
+    return {"run": str(run), **{k: float(np.mean([e[k] for e in per_episode])) for k in keys}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("folders", nargs="+", help="run folders, or folders holding them")
+    parser.add_argument("--episodes", type=int, default=3, help="test episodes per run")
+    parser.add_argument("--seed", type=int, default=10_000)
+    parser.add_argument("--json", default="benchmarks/results/pendulum_behaviour.json")
+    args = parser.parse_args()
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1; got {args.episodes}")
+    runs = []
+    for folder in map(Path, args.folders):
+        found = sorted(p.parent for p in folder.glob("**/done.json"))
+        if not found:
+            parser.error(f"{folder}: no finished run folder (with done.json) in it")
+        runs.extend(found)
+    rows = [behaviour(run, args.episodes, args.seed) for run in runs]
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault(str(Path(row["run"]).parent), []).append(row)
+    cols = ("upright", "mean_abs_action", "saturated", "turns", "return")
+    header = f"{'runs':50s} {'n':>3s} " + " ".join(f"{c:>15s}" for c in cols)
+    print(header)
+    print("-" * len(header))
+    summary = []
+    for group, members in groups.items():
+        means = {c: float(np.mean([m[c] for m in members])) for c in cols}
+        summary.append({"group": group, "runs": len(members), **means})
+        print(f"{group[-50:]:50s} {len(members):3d} " + " ".join(f"{means[c]:15.2f}" for c in cols))
+    path = write_json(args.json, {"episodes": args.episodes, "groups": summary, "runs": rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
