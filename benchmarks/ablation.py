@@ -11,8 +11,9 @@ resume). It prints, per variant, task and method:
 * the mean return of the first 50 training episodes (early learning), with its CI;
 * the number of seeds whose score reaches 950 (pendulum) or 800 (swingup);
 * per variant and task, the probability that a run of the variant scores above a run of
-  the baseline, P(variant > baseline), over the three methods' 30 runs pooled (a choice is
-  the same for the three methods), with a bootstrap 95% CI (Agarwal et al. 2021).
+  the baseline, P(variant > baseline), and above a run of all six changes together,
+  P(variant > all), over the three methods' 30 runs pooled (a choice is the same for the
+  three methods), with a bootstrap 95% CI (Agarwal et al. 2021).
 
 The compute is large (Swingup's episodes are always 1000 steps), so the benchmark runs in
 chunks: choose them with ``--variants`` and ``--tasks``; finished runs are skipped when
@@ -114,10 +115,10 @@ def summarize(out: Path, variants: list[str], tasks: list[str]) -> list[dict[str
     return rows
 
 
-def versus_baseline(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """P(variant > baseline) per variant and task, the methods' runs pooled, with its CI.
+def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
+    """P(variant > reference) per variant and task, the methods' runs pooled, with its CI.
 
-    Only for variants whose three methods and the baseline's have all finished on the task.
+    Only for variants whose three methods and the reference's have all finished on the task.
     """
     pooled: dict[tuple[str, str], list[float]] = {}
     methods: dict[tuple[str, str], set[str]] = {}
@@ -127,19 +128,20 @@ def versus_baseline(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         methods.setdefault(key, set()).add(r["method"])
     out = []
     for (variant, task), scores in pooled.items():
-        base = ("baseline", task)
-        if variant == "baseline" or base not in pooled:
+        ref = (reference, task)
+        if variant == reference or ref not in pooled:
             continue
-        if methods[(variant, task)] != set(METHODS) or methods[base] != set(METHODS):
+        if methods[(variant, task)] != set(METHODS) or methods[ref] != set(METHODS):
             continue
-        p = probability_of_improvement_ci(scores, pooled[base])
+        p = probability_of_improvement_ci(scores, pooled[ref])
         out.append(
             {
                 "variant": variant,
+                "reference": reference,
                 "task": task,
                 "runs": len(scores),
-                "baseline_runs": len(pooled[base]),
-                "p_above_baseline": p.as_dict(),
+                "reference_runs": len(pooled[ref]),
+                "p_above": p.as_dict(),
             }
         )
     return out
@@ -187,15 +189,18 @@ def main() -> None:
             f"{fmt(r['mean']):>27s} {fmt(r['iqm']):>27s} {fmt(r['first50_mean_return']):>27s} "
             f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
         )
-    versus = versus_baseline(rows)
-    if versus:
-        print("\nP(variant > baseline), the three methods' runs pooled [95% CI]:")
-        for v in versus:
-            p = v["p_above_baseline"]
+    comparisons = {ref: versus(rows, ref) for ref in ("baseline", "all")}
+    for ref, table in comparisons.items():
+        if not table:
+            continue
+        print(f"\nP(variant > {ref}), the three methods' runs pooled [95% CI]:")
+        for v in table:
+            p = v["p_above"]
             ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
-            runs = f"({v['runs']} vs {v['baseline_runs']} runs)"
+            runs = f"({v['runs']} vs {v['reference_runs']} runs)"
             print(f"{v['variant']:11s} {v['task']:9s} {ci}  {runs}")
-    path = write_json(args.json, {"variants": VARIANTS, "rows": rows, "versus_baseline": versus})
+    payload = {"variants": VARIANTS, "rows": rows, "versus": comparisons}
+    path = write_json(args.json, payload)
     print(f"wrote {path}")
 
 
