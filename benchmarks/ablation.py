@@ -118,7 +118,8 @@ def summarize(out: Path, variants: list[str], tasks: list[str]) -> list[dict[str
 def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
     """P(variant > reference) per variant and task, the methods' runs pooled, with its CI.
 
-    Only for variants whose three methods and the reference's have all finished on the task.
+    Only where the variant and the reference each have finished runs of all three methods
+    on the task; the pooled run counts are part of each entry (30 when every seed is done).
     """
     pooled: dict[tuple[str, str], list[float]] = {}
     methods: dict[tuple[str, str], set[str]] = {}

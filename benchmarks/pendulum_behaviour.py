@@ -9,8 +9,8 @@ episode (after a swing-up has had time):
   degrees of vertical);
 * ``mean |a|`` and ``saturated``: the mean action magnitude and the fraction of steps with
   ``|a| > 0.95`` (actions are in [-1, 1]);
-* ``turns``: full turns of the pole over the episode (a spinning pole scores about 0 on
-  Swingup's reward cos(theta));
+* ``turns``: net full turns of the pole from the first step to the last (a spinning pole
+  scores about 0 on Swingup's reward cos(theta));
 * the return of the episode.
 
 Values are means over the episodes; the table groups the runs by their parent folders
@@ -18,7 +18,8 @@ Values are means over the episodes; the table groups the runs by their parent fo
 
     python benchmarks/pendulum_behaviour.py benchmarks/results/ablation/{baseline,all}/swingup
 
-The test environments are seeded with ``--seed`` plus the episode's index.
+The test environments are seeded with ``--seed`` plus the episode's index. Every run's
+task is checked (from its ``config.json``) before the first episode.
 """
 
 from __future__ import annotations
@@ -36,18 +37,52 @@ from _common import write_json
 
 import pporpe
 from pporpe.envs import make_env
+from pporpe.runs.folder import read_config
 
 TASKS = ("pendulum", "swingup")
+
+
+def find_runs(folders: list[Path]) -> list[Path]:
+    """The finished run folders (with ``done.json``) in each folder, each checked to be
+    one of :data:`TASKS`.
+
+    Raises:
+        ValueError: a folder holds no finished run, or a run is of another task.
+    """
+    runs = []
+    for folder in folders:
+        found = sorted(p.parent for p in folder.glob("**/done.json"))
+        if not found:
+            raise ValueError(f"{folder}: no finished run folder (with done.json) in it")
+        for run in found:
+            task = read_config(run)[1].env
+            if task not in TASKS:
+                raise ValueError(f"{run}: env must be one of {TASKS}; got {task!r}")
+        runs.extend(found)
+    return runs
+
+
+def episode_stats(angles: np.ndarray, actions: np.ndarray, ret: float) -> dict[str, float]:
+    """One episode's statistics from the pole angle atan2(sin, cos) at each step (in
+    (-pi, pi]) and the largest action component's magnitude at each step."""
+    theta = np.unwrap(np.asarray(angles, dtype=np.float64))
+    a = np.asarray(actions, dtype=np.float64)
+    half = len(theta) // 2
+    return {
+        "upright": float(np.mean(np.cos(theta[half:]) > 0.9)),
+        "mean_abs_action": float(a[half:].mean()),
+        "saturated": float(np.mean(a[half:] > 0.95)),
+        "turns": float(abs(theta[-1] - theta[0]) / (2 * np.pi)),
+        "return": float(ret),
+        "length": float(len(theta)),
+    }
 
 
 def behaviour(run: Path, episodes: int, seed: int) -> dict[str, Any]:
     """The behaviour statistics of one run's deterministic policy, averaged over episodes."""
     policy = pporpe.load_policy(run)
-    task = policy.config.env
-    if task not in TASKS:
-        raise ValueError(f"{run}: env must be one of {TASKS}; got {task!r}")
     per_episode = []
-    env = make_env(task)
+    env = make_env(policy.config.env)
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + i)
         angles, actions, ret = [], [], 0.0
@@ -59,19 +94,7 @@ def behaviour(run: Path, episodes: int, seed: int) -> dict[str, Any]:
             actions.append(float(np.abs(action).max()))
             if terminated or truncated:
                 break
-        theta = np.unwrap(np.asarray(angles))
-        a = np.asarray(actions)
-        half = len(theta) // 2
-        per_episode.append(
-            {
-                "upright": float(np.mean(np.cos(theta[half:]) > 0.9)),
-                "mean_abs_action": float(a[half:].mean()),
-                "saturated": float(np.mean(a[half:] > 0.95)),
-                "turns": float(abs(theta[-1] - theta[0]) / (2 * np.pi)),
-                "return": ret,
-                "length": len(theta),
-            }
-        )
+        per_episode.append(episode_stats(np.asarray(angles), np.asarray(actions), ret))
     env.close()
     keys = per_episode[0].keys()
     return {"run": str(run), **{k: float(np.mean([e[k] for e in per_episode])) for k in keys}}
@@ -86,12 +109,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1; got {args.episodes}")
-    runs = []
-    for folder in map(Path, args.folders):
-        found = sorted(p.parent for p in folder.glob("**/done.json"))
-        if not found:
-            parser.error(f"{folder}: no finished run folder (with done.json) in it")
-        runs.extend(found)
+    try:
+        runs = find_runs([Path(f) for f in args.folders])
+    except ValueError as err:
+        parser.error(str(err))
     rows = [behaviour(run, args.episodes, args.seed) for run in runs]
     groups: dict[str, list[dict[str, Any]]] = {}
     for row in rows:

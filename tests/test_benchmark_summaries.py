@@ -1,0 +1,69 @@
+"""The summaries the benchmarks print: hand-worked cases, no training."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import ablation  # noqa: E402
+import pendulum_behaviour  # noqa: E402
+
+
+def _row(variant: str, method: str, scores: list[float]) -> dict[str, Any]:
+    return {"variant": variant, "task": "swingup", "method": method, "scores": scores}
+
+
+def test_versus_pools_the_three_methods_and_skips_incomplete_variants() -> None:
+    rows = [_row("baseline", m, [1.0, 3.0]) for m in ablation.METHODS]  # 6 runs: 1,1,1,3,3,3
+    rows += [_row("amsgrad", m, [2.0]) for m in ablation.METHODS]  # 3 runs of 2
+    rows += [_row("critic", m, [5.0]) for m in ("ppo", "rb")]  # PPO-RPE not finished
+    table = ablation.versus(rows, "baseline")
+    assert [(v["variant"], v["runs"], v["reference_runs"]) for v in table] == [("amsgrad", 3, 6)]
+    # 2 beats each 1 and loses to each 3: P = (3 * 3) / (3 * 6) = 0.5
+    assert table[0]["p_above"]["value"] == pytest.approx(0.5)
+    against_amsgrad = ablation.versus(rows, "amsgrad")
+    assert [v["variant"] for v in against_amsgrad] == ["baseline"]
+    assert against_amsgrad[0]["p_above"]["value"] == pytest.approx(0.5)
+    rows += [_row("trace_kl", m, [4.0, 4.0]) for m in ablation.METHODS]  # above every baseline run
+    top = {v["variant"]: v["p_above"]["value"] for v in ablation.versus(rows, "baseline")}
+    assert top == {"amsgrad": pytest.approx(0.5), "trace_kl": pytest.approx(1.0)}
+    assert ablation.versus(rows, "all") == []  # no reference runs: nothing to compare
+
+
+def test_episode_stats_by_hand() -> None:
+    # Four steps: the first half hangs down, the second half is upright (0 and 0.1 rad).
+    angles = np.array([np.pi, -np.pi + 0.1, 0.0, 0.1])
+    actions = np.array([1.0, 1.0, 0.96, 0.5])
+    stats = pendulum_behaviour.episode_stats(angles, actions, ret=1.5)
+    assert stats["upright"] == 1.0  # cos(0) and cos(0.1) are above 0.9
+    assert stats["mean_abs_action"] == pytest.approx(0.73)  # (0.96 + 0.5) / 2
+    assert stats["saturated"] == 0.5  # 0.96 is past 0.95, 0.5 is not
+    assert stats["return"] == 1.5 and stats["length"] == 4
+    # Unwrapped, theta runs pi, pi + 0.1, 2 pi, 2 pi + 0.1: a net (pi + 0.1) / (2 pi) turn.
+    assert stats["turns"] == pytest.approx((np.pi + 0.1) / (2 * np.pi))
+    spin = np.angle(np.exp(1j * np.linspace(0.0, 4 * np.pi, 401)))  # two turns, wrapped
+    assert pendulum_behaviour.episode_stats(spin, np.zeros(401), 0.0)["turns"] == pytest.approx(2)
+
+
+def test_find_runs_checks_every_task_before_any_episode(tmp_path: Path) -> None:
+    paper = ROOT / "results" / "paper"
+    for task, seed in (("swingup", 0), ("halfcheetah", 1)):
+        run = tmp_path / task / f"seed{seed}"
+        run.mkdir(parents=True)
+        shutil.copy(paper / task / "rpe" / f"seed{seed}" / "config.json", run / "config.json")
+        (run / "done.json").write_text(json.dumps({"total_steps": 1}))
+    assert pendulum_behaviour.find_runs([tmp_path / "swingup"]) == [tmp_path / "swingup/seed0"]
+    with pytest.raises(ValueError, match=r"env must be one of \('pendulum', 'swingup'\)"):
+        pendulum_behaviour.find_runs([tmp_path])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no finished run folder"):
+        pendulum_behaviour.find_runs([tmp_path / "empty"])
