@@ -118,14 +118,15 @@ def main() -> None:
     for row in rows:
         groups.setdefault(str(Path(row["run"]).parent), []).append(row)
     cols = ("upright", "mean_abs_action", "saturated", "turns", "return")
-    header = f"{'runs':50s} {'n':>3s} " + " ".join(f"{c:>15s}" for c in cols)
+    width = max([4, *(len(g) for g in groups)])
+    header = f"{'runs':{width}s} {'n':>3s} " + " ".join(f"{c:>15s}" for c in cols)
     print(header)
     print("-" * len(header))
     summary = []
     for group, members in groups.items():
         means = {c: float(np.mean([m[c] for m in members])) for c in cols}
         summary.append({"group": group, "runs": len(members), **means})
-        print(f"{group[-50:]:50s} {len(members):3d} " + " ".join(f"{means[c]:15.2f}" for c in cols))
+        print(f"{group:{width}s} {len(members):3d} " + " ".join(f"{means[c]:15.2f}" for c in cols))
     path = write_json(args.json, {"episodes": args.episodes, "groups": summary, "runs": rows})
     print(f"wrote {path}")
 
