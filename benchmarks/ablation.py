@@ -19,6 +19,8 @@ resume). It prints, per variant, task and method:
 The compute is large (Swingup's episodes are always 1000 steps), so the benchmark runs in
 chunks: choose them with ``--variants`` and ``--tasks``; finished runs are skipped when
 started again with the same ``--out``, and ``--summarize`` only reads what is on disk.
+The printout shows the chosen variants and tasks; the JSON (and the comparisons) always
+cover every variant and task with finished runs under ``--out``.
 
     python benchmarks/ablation.py [--variants baseline critic ...] [--tasks pendulum]
                                   [--seeds 10] [--out DIR] [--json FILE] [--summarize]
@@ -54,18 +56,21 @@ AUTHOR: dict[str, dict[str, Any]] = {
 }
 """Each difference, as the OnlineConfig fields that give the author's choice."""
 
+
+def combined(names: Any) -> dict[str, Any]:
+    """pporpe 0.2's choices with the named changes of :data:`AUTHOR` on top."""
+    return {**V0_2_CHOICES, **{k: v for name in names for k, v in AUTHOR[name].items()}}
+
+
 VARIANTS: dict[str, dict[str, Any]] = {
     "baseline": dict(V0_2_CHOICES),
-    **{name: {**V0_2_CHOICES, **change} for name, change in AUTHOR.items()},
-    "all": {**V0_2_CHOICES, **{k: v for change in AUTHOR.values() for k, v in change.items()}},
-    "all_but_entropy": {
-        **V0_2_CHOICES,
-        **{k: v for name, change in AUTHOR.items() if name != "entropy" for k, v in change.items()},
-    },
+    **{name: combined([name]) for name in AUTHOR},
+    "all": combined(AUTHOR),
+    "all_but_entropy": combined(name for name in AUTHOR if name != "entropy"),
 }
 """Each variant's learner settings, every choice explicit (pporpe 0.3's defaults are
 "all"). "all_but_entropy" is all changes except the pre-squash entropy density, the one
-that alone makes Swingup's policies worse (P(entropy > baseline) 0.27 [0.16, 0.41])."""
+that alone makes Swingup worse (docs/online-learner.md)."""
 assert VARIANTS["all"] == dict(AUTHOR_CHOICES)
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 METHODS = ("ppo", "rb", "rpe")
@@ -183,30 +188,36 @@ def main() -> None:
             outcome = reproduce(spec, out / variant, workers=args.workers)
             print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
                   f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip
-    rows = summarize(out, args.variants, args.tasks)
+    # The JSON and the comparisons cover every variant and task on disk, so that a chunk's
+    # command never overwrites the file with a subset; the printout is the chosen ones.
+    every = summarize(out, list(VARIANTS), list(THRESHOLD))
+    chosen = {(v, t) for v in args.variants for t in args.tasks}
+    rows = [r for r in every if (r["variant"], r["task"]) in chosen]
+    w = max(map(len, VARIANTS))
     header = (
-        f"{'variant':15s} {'task':9s} {'method':6s} {'n':>3s} {'mean score [95% CI]':>27s} "
+        f"{'variant':{w}s} {'task':9s} {'method':6s} {'n':>3s} {'mean score [95% CI]':>27s} "
         f"{'IQM [95% CI]':>27s} {'first-50 mean [95% CI]':>27s} {'>= thr':>7s}"
     )
     print(header)
     print("-" * len(header))
     for r in rows:
         print(
-            f"{r['variant']:15s} {r['task']:9s} {r['method']:6s} {r['seeds']:3d} "
+            f"{r['variant']:{w}s} {r['task']:9s} {r['method']:6s} {r['seeds']:3d} "
             f"{fmt(r['mean']):>27s} {fmt(r['iqm']):>27s} {fmt(r['first50_mean_return']):>27s} "
             f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
         )
-    comparisons = {ref: versus(rows, ref) for ref in ("baseline", "all")}
+    comparisons = {ref: versus(every, ref) for ref in ("baseline", "all")}
     for ref, table in comparisons.items():
-        if not table:
+        shown = [v for v in table if (v["variant"], v["task"]) in chosen]
+        if not shown:
             continue
         print(f"\nP(variant > {ref}), the three methods' runs pooled [95% CI]:")
-        for v in table:
+        for v in shown:
             p = v["p_above"]
             ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
             runs = f"({v['runs']} vs {v['reference_runs']} runs)"
-            print(f"{v['variant']:15s} {v['task']:9s} {ci}  {runs}")
-    payload = {"variants": VARIANTS, "rows": rows, "versus": comparisons}
+            print(f"{v['variant']:{w}s} {v['task']:9s} {ci}  {runs}")
+    payload = {"variants": VARIANTS, "rows": every, "versus": comparisons}
     path = write_json(args.json, payload)
     print(f"wrote {path}")
 

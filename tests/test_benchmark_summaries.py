@@ -17,6 +17,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import ablation  # noqa: E402
 import pendulum_behaviour  # noqa: E402
 
+import pporpe.online  # noqa: E402
+
 
 def _row(variant: str, method: str, scores: list[float]) -> dict[str, Any]:
     return {"variant": variant, "task": "swingup", "method": method, "scores": scores}
@@ -37,6 +39,38 @@ def test_versus_pools_the_three_methods_and_skips_incomplete_variants() -> None:
     top = {v["variant"]: v["p_above"]["value"] for v in ablation.versus(rows, "baseline")}
     assert top == {"amsgrad": pytest.approx(0.5), "trace_kl": pytest.approx(1.0)}
     assert ablation.versus(rows, "all") == []  # no reference runs: nothing to compare
+
+
+def test_all_but_entropy_is_the_defaults_with_the_bounded_actions_density() -> None:
+    expected = {**pporpe.online.AUTHOR_CHOICES, "entropy_density": "action"}
+    assert ablation.VARIANTS["all_but_entropy"] == expected
+    assert pporpe.online.V0_2_CHOICES["entropy_density"] == "action"
+    assert ablation.VARIANTS["critic"] == {
+        **pporpe.online.V0_2_CHOICES,
+        **ablation.AUTHOR["critic"],
+    }
+
+
+def test_a_chunks_summary_json_keeps_every_variant_on_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    source = ROOT / "benchmarks" / "results" / "ablation"
+    for variant in ("baseline", "amsgrad"):
+        for method in ablation.METHODS:
+            run = Path(variant) / "pendulum" / method / "seed0"
+            shutil.copytree(source / run, tmp_path / run)
+    out = tmp_path / "ablation.json"
+    argv = ["ablation.py", "--summarize", "--variants", "amsgrad", "--tasks", "pendulum"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--out", str(tmp_path), "--json", str(out)])
+    ablation.main()
+    payload = json.loads(out.read_text())
+    assert {(r["variant"], r["method"]) for r in payload["rows"]} == {
+        (v, m) for v in ("baseline", "amsgrad") for m in ablation.METHODS
+    }
+    (entry,) = payload["versus"]["baseline"]
+    assert (entry["variant"], entry["runs"], entry["reference_runs"]) == ("amsgrad", 3, 3)
+    printed = capsys.readouterr().out
+    assert "amsgrad " in printed and "baseline " not in printed.split("P(variant")[0]
 
 
 def test_episode_stats_by_hand() -> None:
