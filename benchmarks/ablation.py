@@ -2,7 +2,8 @@
 
 Each *variant* is the baseline (pporpe 0.2's choices, ``V0_2_CHOICES``) with one change,
 or all changes together (``AUTHOR_CHOICES``, pporpe 0.3's defaults), or all but the
-entropy density (``all_but_entropy``); every variant runs
+entropy density (``all_but_entropy``), or any combination of the changes named with ``+``
+(``amsgrad+td_units``: pporpe 0.2's choices with those two changes); every variant runs
 the paper's comparison (PPO, PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the
 paper's 200 episodes with 10 seeds, through the grid machinery (populations, checkpoints,
 resume). It prints, per variant, task and method:
@@ -43,6 +44,7 @@ from pporpe.evaluation import load_evaluation
 from pporpe.experiments.grid import parse_spec
 from pporpe.experiments.reproduce import reproduce
 from pporpe.experiments.stats import bootstrap_ci, iqm, probability_of_improvement_ci
+from pporpe.io import atomic_write_text
 from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES
 from pporpe.runs.logger import read_records
 
@@ -72,6 +74,57 @@ VARIANTS: dict[str, dict[str, Any]] = {
 "all"). "all_but_entropy" is all changes except the pre-squash entropy density, the one
 that alone makes Swingup worse (docs/online-learner.md)."""
 assert VARIANTS["all"] == dict(AUTHOR_CHOICES)
+
+
+def variant_settings(name: str) -> dict[str, Any]:
+    """A variant's learner settings: a name of :data:`VARIANTS`, or a combination of the
+    changes of :data:`AUTHOR` joined by ``+`` (``amsgrad+td_units``: pporpe 0.2's choices
+    with those changes on top). Raises ValueError naming what is allowed."""
+    if name in VARIANTS:
+        return dict(VARIANTS[name])
+    parts = name.split("+")
+    unknown = [p for p in parts if p not in AUTHOR]
+    if len(parts) < 2 or unknown or len(set(parts)) != len(parts):
+        raise ValueError(
+            f"variant must be one of {sorted(VARIANTS)} or two or more distinct changes of "
+            f"{sorted(AUTHOR)} joined by '+'; got {name!r}"
+        )
+    return combined(parts)
+
+
+def canonical(name: str) -> str:
+    """A combination's changes in :data:`AUTHOR`'s order (its folder name), so that
+    ``trace_kl+amsgrad`` and ``amsgrad+trace_kl`` are one variant; other names unchanged."""
+    variant_settings(name)
+    if name in VARIANTS:
+        return name
+    order = list(AUTHOR)
+    return "+".join(sorted(name.split("+"), key=order.index))
+
+
+def variant_arg(name: str) -> str:
+    """argparse type for ``--variants``: the :func:`canonical` name, checked."""
+    try:
+        return canonical(name)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def variants_on_disk(out: Path) -> list[str]:
+    """The variants of :data:`VARIANTS`, then the combinations with a folder under ``out``."""
+    combos = sorted(
+        p.name for p in out.glob("*+*") if p.is_dir() and p.name not in VARIANTS and _valid(p.name)
+    )
+    return [*VARIANTS, *combos]
+
+
+def _valid(name: str) -> bool:
+    try:
+        return canonical(name) == name
+    except ValueError:
+        return False
+
+
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 METHODS = ("ppo", "rb", "rpe")
 
@@ -88,7 +141,7 @@ def spec_for(variant: str, tasks: list[str], seeds: int, eval_episodes: int, epi
             "methods": list(METHODS),
             "seeds": seeds,
             "eval_episodes": eval_episodes,
-            "learner": dict(VARIANTS[variant]),
+            "learner": variant_settings(variant),
             "tasks": [{"env": t, "episodes": episodes} for t in tasks],
         },
         f"ablation:{variant}",
@@ -159,13 +212,98 @@ def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
     return out
 
 
+def payload_command() -> str:
+    """The command line that ran this benchmark, as the JSON records it."""
+    return " ".join([Path(sys.executable).name, *sys.argv])
+
+
 def fmt(ci: dict[str, float]) -> str:
     return f"{ci['value']:7.1f} [{ci['low']:7.1f}, {ci['high']:7.1f}]"
 
 
+METHOD_NAMES = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
+TASK_NAMES = {"pendulum": "InvertedPendulum", "swingup": "Swingup"}
+
+
+def summary_table(rows: list[dict[str, Any]], probs: dict[tuple[str, str, str], str]) -> list[str]:
+    """One line per variant, both tasks: the three methods' mean scores, PPO / PPO-RB /
+    PPO-RPE, with their seeds at the threshold, and P(> baseline) pooled [95% CI]."""
+    means: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
+    for r in rows:
+        means.setdefault((r["variant"], r["task"]), {})[r["method"]] = r
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    head = ["variant"]
+    for task in THRESHOLD:
+        head += [
+            f"{TASK_NAMES[task]}: PPO / PPO-RB / PPO-RPE (seeds >= {THRESHOLD[task]:.0f})",
+            "P(> baseline)",
+        ]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for v in variants:
+        row = [v]
+        for task in THRESHOLD:
+            got = means.get((v, task), {})
+            if not got:
+                row += ["not run", ""]
+                continue
+            score = " / ".join(
+                f"{got[m]['mean']['value']:.0f}" if m in got else "-" for m in METHODS
+            )
+            reach = ", ".join(
+                f"{got[m]['seeds_reaching']}/{got[m]['seeds']}" if m in got else "-"
+                for m in METHODS
+            )
+            row += [f"{score} ({reach})", probs.get((task, v, "baseline"), "")]
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
+def markdown(rows: list[dict[str, Any]], comparisons: dict[str, list[dict[str, Any]]]) -> str:
+    """The tables of the README and docs/online-learner.md: :func:`summary_table`, then
+    per task one line per variant with each method's mean score [95% CI] and seeds at the
+    threshold, then P(> baseline) and P(> all) pooled over the methods [95% CI]."""
+    cells: dict[tuple[str, str], dict[str, str]] = {}
+    for r in rows:
+        m, n = r["mean"], r["seeds"]
+        cells.setdefault((r["task"], r["variant"]), {})[r["method"]] = (
+            f"{m['value']:.0f} [{m['low']:.0f}, {m['high']:.0f}], {r['seeds_reaching']}/{n}"
+        )
+    probs: dict[tuple[str, str, str], str] = {}
+    for ref, table in comparisons.items():
+        for v in table:
+            p = v["p_above"]
+            probs[(v["task"], v["variant"], ref)] = (
+                f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+            )
+    lines = [*summary_table(rows, probs), ""]
+    for task in THRESHOLD:
+        variants = [v for (t, v) in cells if t == task]
+        if not variants:
+            continue
+        lines += [
+            f"{TASK_NAMES[task]} (mean score [95% CI], seeds >= {THRESHOLD[task]:.0f}):",
+            "",
+            "| variant | PPO | PPO-RB | PPO-RPE | P(> baseline) | P(> all) |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for v in variants:
+            row = [cells[(task, v)].get(m, "not run") for m in METHODS]
+            row += [probs.get((task, v, ref), "") for ref in ("baseline", "all")]
+            lines.append(f"| {v} | " + " | ".join(row) + " |")
+        lines.append("")
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=list(VARIANTS),
+        type=variant_arg,
+        metavar="VARIANT",
+        help=f"{', '.join(VARIANTS)}, or changes joined by '+' (e.g. amsgrad+td_units)",
+    )
     parser.add_argument("--tasks", nargs="+", default=["pendulum", "swingup"])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--eval-episodes", type=int, default=50)
@@ -177,23 +315,30 @@ def main() -> None:
         help="run folders (their checkpoints and TensorBoard logs are not committed)",
     )
     parser.add_argument("--json", default="benchmarks/results/ablation.json")
+    parser.add_argument(
+        "--markdown",
+        default="benchmarks/results/ablation.md",
+        help="the same summary as Markdown tables (every variant on disk)",
+    )
     parser.add_argument("--summarize", action="store_true", help="only read finished runs")
     args = parser.parse_args()
     out = Path(args.out)
     if not args.summarize:
         for variant in args.variants:
             spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
-            changed = {k: v for k, v in VARIANTS[variant].items() if V0_2_CHOICES[k] != v}
+            settings = variant_settings(variant)
+            changed = {k: v for k, v in settings.items() if V0_2_CHOICES[k] != v}
             print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
             outcome = reproduce(spec, out / variant, workers=args.workers)
             print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
                   f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip
     # The JSON and the comparisons cover every variant and task on disk, so that a chunk's
     # command never overwrites the file with a subset; the printout is the chosen ones.
-    every = summarize(out, list(VARIANTS), list(THRESHOLD))
+    names = variants_on_disk(out)
+    every = summarize(out, names, list(THRESHOLD))
     chosen = {(v, t) for v in args.variants for t in args.tasks}
     rows = [r for r in every if (r["variant"], r["task"]) in chosen]
-    w = max(map(len, VARIANTS))
+    w = max(map(len, names))
     header = (
         f"{'variant':{w}s} {'task':9s} {'method':6s} {'n':>3s} {'mean score [95% CI]':>27s} "
         f"{'IQM [95% CI]':>27s} {'first-50 mean [95% CI]':>27s} {'>= thr':>7s}"
@@ -217,9 +362,16 @@ def main() -> None:
             ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
             runs = f"({v['runs']} vs {v['reference_runs']} runs)"
             print(f"{v['variant']:{w}s} {v['task']:9s} {ci}  {runs}")
-    payload = {"variants": VARIANTS, "rows": every, "versus": comparisons}
+    payload = {
+        "variants": {n: variant_settings(n) for n in names},
+        "rows": every,
+        "versus": comparisons,
+    }
     path = write_json(args.json, payload)
     print(f"wrote {path}")
+    header = f"<!-- written by: {payload_command()} -->\n\n"
+    md = atomic_write_text(args.markdown, header + markdown(every, comparisons))
+    print(f"wrote {md}")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,84 @@ def test_all_but_entropy_is_the_defaults_with_the_bounded_actions_density() -> N
     }
 
 
+def test_a_combination_of_changes_is_the_baseline_with_those_changes() -> None:
+    settings = ablation.variant_settings("amsgrad+td_units")
+    assert settings == {
+        **pporpe.online.V0_2_CHOICES,
+        "amsgrad_max": "raw",
+        "amsgrad_decay": 0.99999,
+        "td_units": "unscaled",
+    }
+    assert settings["critic_signal"] == "td"  # the changes not named keep pporpe 0.2's choice
+    # every change joined is all six, and a named variant is itself
+    assert ablation.variant_settings("+".join(ablation.AUTHOR)) == ablation.VARIANTS["all"]
+    assert ablation.variant_settings("critic") == ablation.VARIANTS["critic"]
+    assert ablation.canonical("trace_kl+amsgrad") == "amsgrad+trace_kl"  # one folder per set
+    assert ablation.canonical("critic") == "critic"
+    for bad in ("amsgrad+nope", "amsgrad+amsgrad", "nope", "amsgrad+"):
+        with pytest.raises(ValueError, match=r"variant must be one of .* joined by '\+'"):
+            ablation.variant_settings(bad)
+
+
+def test_a_combinations_runs_are_summarised_from_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    source = ROOT / "benchmarks" / "results" / "ablation"
+    combo = "amsgrad+trace_kl"
+    for variant, copy_as in (("baseline", "baseline"), ("amsgrad", combo)):
+        for method in ablation.METHODS:
+            run = Path("pendulum") / method / "seed0"
+            shutil.copytree(source / variant / run, tmp_path / copy_as / run)
+    (tmp_path / "not+a+variant").mkdir()  # a stray folder is not a variant
+    (tmp_path / "trace_kl+amsgrad").mkdir()  # nor one in another order
+    out, md = tmp_path / "ablation.json", tmp_path / "ablation.md"
+    argv = ["ablation.py", "--summarize", "--variants", combo, "--tasks", "pendulum"]
+    monkeypatch.setattr(
+        sys, "argv", [*argv, "--out", str(tmp_path), "--json", str(out), "--markdown", str(md)]
+    )
+    ablation.main()
+    payload = json.loads(out.read_text())
+    assert payload["variants"][combo] == ablation.variant_settings(combo)
+    assert set(payload["variants"]) == {*ablation.VARIANTS, combo}
+    assert {r["variant"] for r in payload["rows"]} == {"baseline", combo}
+    (entry,) = payload["versus"]["baseline"]
+    assert (entry["variant"], entry["runs"]) == (combo, 3)
+    assert combo in capsys.readouterr().out
+    assert f"| {combo} | " in md.read_text()
+    monkeypatch.setattr(sys, "argv", ["ablation.py", "--variants", "amsgrad+nope"])
+    with pytest.raises(SystemExit):
+        ablation.main()
+    assert "variant must be one of" in capsys.readouterr().err
+
+
+def test_markdown_tables_by_hand() -> None:
+    def row(variant: str, method: str, task: str, mean: float, reaching: int) -> dict[str, Any]:
+        ci = {"value": mean, "low": mean - 10.4, "high": mean + 20.6}
+        return {"variant": variant, "task": task, "method": method, "seeds": 10,
+                "mean": ci, "seeds_reaching": reaching}  # fmt: skip
+
+    rows = [row("baseline", m, "swingup", 300.0, 1) for m in ablation.METHODS]
+    rows += [row("amsgrad", m, "swingup", 450.2, 3) for m in ("ppo", "rb")]
+    p = {"value": 0.583, "low": 0.4249, "high": 0.7251}
+    comparisons = {
+        "baseline": [{"variant": "amsgrad", "task": "swingup", "p_above": p}],
+        "all": [],
+    }
+    text = ablation.markdown(rows, comparisons)
+    lines = text.splitlines()
+    # the summary: both tasks on one line per variant, a task not run says so
+    assert lines[2] == "| baseline | not run |  | 300 / 300 / 300 (1/10, 1/10, 1/10) |  |"
+    assert (
+        lines[3] == "| amsgrad | not run |  | 450 / 450 / - (3/10, 3/10, -) | 0.58 [0.42, 0.73] |"
+    )
+    lines = lines[5:]
+    assert lines[0] == "Swingup (mean score [95% CI], seeds >= 800):"  # no pendulum rows
+    assert "| baseline | 300 [290, 321], 1/10 | 300 [290, 321], 1/10 |" in text
+    assert lines[-1] == "| amsgrad | 450 [440, 471], 3/10 | 450 [440, 471], 3/10 | not run | " \
+        "0.58 [0.42, 0.73] |  |"  # fmt: skip
+    assert text.endswith("|\n")
+
+
 def test_a_chunks_summary_json_keeps_every_variant_on_disk(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -59,9 +137,11 @@ def test_a_chunks_summary_json_keeps_every_variant_on_disk(
         for method in ablation.METHODS:
             run = Path(variant) / "pendulum" / method / "seed0"
             shutil.copytree(source / run, tmp_path / run)
-    out = tmp_path / "ablation.json"
+    out, md = tmp_path / "ablation.json", tmp_path / "ablation.md"
     argv = ["ablation.py", "--summarize", "--variants", "amsgrad", "--tasks", "pendulum"]
-    monkeypatch.setattr(sys, "argv", [*argv, "--out", str(tmp_path), "--json", str(out)])
+    monkeypatch.setattr(
+        sys, "argv", [*argv, "--out", str(tmp_path), "--json", str(out), "--markdown", str(md)]
+    )
     ablation.main()
     payload = json.loads(out.read_text())
     assert {(r["variant"], r["method"]) for r in payload["rows"]} == {
