@@ -47,12 +47,17 @@ def machine_info() -> dict[str, Any]:
     }
 
 
+def payload_command() -> str:
+    """The command line that is running this benchmark."""
+    return " ".join([Path(sys.executable).name, *sys.argv])
+
+
 def write_json(path: str | Path, payload: dict[str, Any]) -> Path:
     """Write the benchmark's results with the machine and the command that made them."""
     from pporpe.io import atomic_write_json
 
     payload = {
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "command": payload_command(),
         "machine": machine_info(),
         **payload,
     }

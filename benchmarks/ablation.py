@@ -38,12 +38,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import write_json
+from _common import payload_command, write_json
 
 from pporpe.evaluation import load_evaluation
 from pporpe.experiments.grid import parse_spec
 from pporpe.experiments.reproduce import reproduce
-from pporpe.experiments.stats import bootstrap_ci, iqm, probability_of_improvement_ci
+from pporpe.experiments.stats import (
+    average_probability_of_improvement_ci,
+    bootstrap_ci,
+    iqm,
+    probability_of_improvement_ci,
+)
 from pporpe.io import atomic_write_text
 from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES
 from pporpe.runs.logger import read_records
@@ -212,9 +217,41 @@ def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
     return out
 
 
-def payload_command() -> str:
-    """The command line that ran this benchmark, as the JSON records it."""
-    return " ".join([Path(sys.executable).name, *sys.argv])
+def versus_both(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
+    """P(variant > reference) averaged over the tasks, each task's three methods pooled,
+    with a bootstrap CI (``average_probability_of_improvement_ci``): a choice is made once
+    for every task. Only variants with finished runs of all three methods on every task
+    of :data:`THRESHOLD`, as has the reference; the pooled run counts per task are part
+    of each entry (30 when every seed is done)."""
+    pooled: dict[tuple[str, str], list[float]] = {}
+    methods: dict[tuple[str, str], set[str]] = {}
+    for r in rows:
+        key = (r["variant"], r["task"])
+        pooled.setdefault(key, []).extend(r["scores"])
+        methods.setdefault(key, set()).add(r["method"])
+
+    def complete(variant: str) -> bool:
+        return all(methods.get((variant, t)) == set(METHODS) for t in THRESHOLD)
+
+    out = []
+    if not complete(reference):
+        return out
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        if variant == reference or not complete(variant):
+            continue
+        pairs = [(pooled[(variant, t)], pooled[(reference, t)]) for t in THRESHOLD]
+        p = average_probability_of_improvement_ci(pairs)
+        out.append(
+            {
+                "variant": variant,
+                "reference": reference,
+                "tasks": list(THRESHOLD),
+                "runs": [len(x) for x, _ in pairs],
+                "reference_runs": [len(y) for _, y in pairs],
+                "p_above": p.as_dict(),
+            }
+        )
+    return out
 
 
 def fmt(ci: dict[str, float]) -> str:
@@ -227,7 +264,8 @@ TASK_NAMES = {"pendulum": "InvertedPendulum", "swingup": "Swingup"}
 
 def summary_table(rows: list[dict[str, Any]], probs: dict[tuple[str, str, str], str]) -> list[str]:
     """One line per variant, both tasks: the three methods' mean scores, PPO / PPO-RB /
-    PPO-RPE, with their seeds at the threshold, and P(> baseline) pooled [95% CI]."""
+    PPO-RPE, with their seeds at the threshold, and P(> baseline) pooled [95% CI]; then
+    P(> baseline) and P(> all) averaged over the two tasks (``probs[("both", ...)]``)."""
     means: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
     for r in rows:
         means.setdefault((r["variant"], r["task"]), {})[r["method"]] = r
@@ -238,6 +276,7 @@ def summary_table(rows: list[dict[str, Any]], probs: dict[tuple[str, str, str], 
             f"{TASK_NAMES[task]}: PPO / PPO-RB / PPO-RPE (seeds >= {THRESHOLD[task]:.0f})",
             "P(> baseline)",
         ]
+    head += ["P(> baseline), both tasks", "P(> all), both tasks"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for v in variants:
         row = [v]
@@ -254,11 +293,16 @@ def summary_table(rows: list[dict[str, Any]], probs: dict[tuple[str, str, str], 
                 for m in METHODS
             )
             row += [f"{score} ({reach})", probs.get((task, v, "baseline"), "")]
+        row += [probs.get(("both", v, ref), "") for ref in ("baseline", "all")]
         lines.append("| " + " | ".join(row) + " |")
     return lines
 
 
-def markdown(rows: list[dict[str, Any]], comparisons: dict[str, list[dict[str, Any]]]) -> str:
+def markdown(
+    rows: list[dict[str, Any]],
+    comparisons: dict[str, list[dict[str, Any]]],
+    both: dict[str, list[dict[str, Any]]] | None = None,
+) -> str:
     """The tables of the README and docs/online-learner.md: :func:`summary_table`, then
     per task one line per variant with each method's mean score [95% CI] and seeds at the
     threshold, then P(> baseline) and P(> all) pooled over the methods [95% CI]."""
@@ -273,6 +317,12 @@ def markdown(rows: list[dict[str, Any]], comparisons: dict[str, list[dict[str, A
         for v in table:
             p = v["p_above"]
             probs[(v["task"], v["variant"], ref)] = (
+                f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+            )
+    for ref, table in (both or {}).items():
+        for v in table:
+            p = v["p_above"]
+            probs[("both", v["variant"], ref)] = (
                 f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
             )
     lines = [*summary_table(rows, probs), ""]
@@ -352,6 +402,7 @@ def main() -> None:
             f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
         )
     comparisons = {ref: versus(every, ref) for ref in ("baseline", "all")}
+    both = {ref: versus_both(every, ref) for ref in ("baseline", "all")}
     for ref, table in comparisons.items():
         shown = [v for v in table if (v["variant"], v["task"]) in chosen]
         if not shown:
@@ -362,15 +413,24 @@ def main() -> None:
             ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
             runs = f"({v['runs']} vs {v['reference_runs']} runs)"
             print(f"{v['variant']:{w}s} {v['task']:9s} {ci}  {runs}")
+    for ref, table in both.items():
+        shown = [v for v in table if v["variant"] in args.variants]
+        if not shown:
+            continue
+        print(f"\nP(variant > {ref}), mean over both tasks [95% CI]:")
+        for v in shown:
+            p = v["p_above"]
+            print(f"{v['variant']:{w}s} {p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]")
     payload = {
         "variants": {n: variant_settings(n) for n in names},
         "rows": every,
         "versus": comparisons,
+        "versus_both_tasks": both,
     }
     path = write_json(args.json, payload)
     print(f"wrote {path}")
     header = f"<!-- written by: {payload_command()} -->\n\n"
-    md = atomic_write_text(args.markdown, header + markdown(every, comparisons))
+    md = atomic_write_text(args.markdown, header + markdown(every, comparisons, both))
     print(f"wrote {md}")
 
 

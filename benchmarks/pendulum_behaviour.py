@@ -19,12 +19,17 @@ Values are means over the episodes; the table groups the runs by their parent fo
     python benchmarks/pendulum_behaviour.py benchmarks/results/ablation/{baseline,all}/swingup
 
 The test environments are seeded with ``--seed`` plus the episode's index. Every run's
-task is checked (from its ``config.json``) before the first episode.
+task is checked (from its ``config.json``) before the first episode. Replaying needs each
+run's checkpoint, which is not committed, so a later machine can measure only the runs it
+trained: ``--merge`` keeps the groups already in the JSON that this call does not measure
+(measured with the same ``--episodes`` and ``--seed``), each with the command that
+measured it.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,7 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import write_json
+from _common import payload_command, write_json
 
 import pporpe
 from pporpe.envs import make_env
@@ -100,15 +105,44 @@ def behaviour(run: Path, episodes: int, seed: int) -> dict[str, Any]:
     return {"run": str(run), **{k: float(np.mean([e[k] for e in per_episode])) for k in keys}}
 
 
+def merged(
+    previous: dict[str, Any], groups: list[dict[str, Any]], rows: list[dict[str, Any]]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """``previous``'s groups and runs that ``groups`` does not measure, then ``groups``
+    and ``rows``; a previous group without its own command gets the file's."""
+    fresh = {g["group"] for g in groups}
+    old_groups = [
+        {"command": previous.get("command", ""), **g}
+        for g in previous.get("groups", [])
+        if g["group"] not in fresh
+    ]
+    old_runs = [r for r in previous.get("runs", []) if str(Path(r["run"]).parent) not in fresh]
+    return [*old_groups, *groups], [*old_runs, *rows]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folders", nargs="+", help="run folders, or folders holding them")
     parser.add_argument("--episodes", type=int, default=3, help="test episodes per run")
     parser.add_argument("--seed", type=int, default=10_000)
     parser.add_argument("--json", default="benchmarks/results/pendulum_behaviour.json")
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the groups already in --json that this call does not measure",
+    )
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1; got {args.episodes}")
+    previous: dict[str, Any] = {}
+    if args.merge and Path(args.json).exists():
+        previous = json.loads(Path(args.json).read_text())
+        if (previous.get("episodes"), previous.get("seed", 10_000)) != (args.episodes, args.seed):
+            parser.error(
+                f"--merge: {args.json} was measured with --episodes "
+                f"{previous.get('episodes')} --seed {previous.get('seed', 10_000)}; "
+                f"got --episodes {args.episodes} --seed {args.seed}"
+            )
     try:
         runs = find_runs([Path(f) for f in args.folders])
     except ValueError as err:
@@ -123,11 +157,15 @@ def main() -> None:
     print(header)
     print("-" * len(header))
     summary = []
+    command = payload_command()
     for group, members in groups.items():
         means = {c: float(np.mean([m[c] for m in members])) for c in cols}
-        summary.append({"group": group, "runs": len(members), **means})
+        summary.append({"group": group, "command": command, "runs": len(members), **means})
         print(f"{group:{width}s} {len(members):3d} " + " ".join(f"{means[c]:15.2f}" for c in cols))
-    path = write_json(args.json, {"episodes": args.episodes, "groups": summary, "runs": rows})
+    if previous:
+        summary, rows = merged(previous, summary, rows)
+    payload = {"episodes": args.episodes, "seed": args.seed, "groups": summary, "runs": rows}
+    path = write_json(args.json, payload)
     print(f"wrote {path}")
 
 

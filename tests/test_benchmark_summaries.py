@@ -41,6 +41,22 @@ def test_versus_pools_the_three_methods_and_skips_incomplete_variants() -> None:
     assert ablation.versus(rows, "all") == []  # no reference runs: nothing to compare
 
 
+def test_versus_both_averages_the_tasks_and_needs_every_method_on_both() -> None:
+    def row(variant: str, task: str, method: str, scores: list[float]) -> dict[str, Any]:
+        return {"variant": variant, "task": task, "method": method, "scores": scores}
+
+    rows = [row("baseline", t, m, [1.0]) for t in ablation.THRESHOLD for m in ablation.METHODS]
+    # amsgrad beats the baseline on pendulum (P = 1) and loses on swingup (P = 0): 0.5
+    rows += [row("amsgrad", "pendulum", m, [2.0, 3.0]) for m in ablation.METHODS]
+    rows += [row("amsgrad", "swingup", m, [0.0]) for m in ablation.METHODS]
+    rows += [row("critic", "pendulum", m, [5.0]) for m in ablation.METHODS]  # no swingup
+    (entry,) = ablation.versus_both(rows, "baseline")
+    assert entry["variant"] == "amsgrad" and entry["tasks"] == ["pendulum", "swingup"]
+    assert entry["p_above"]["value"] == pytest.approx(0.5)
+    assert (entry["runs"], entry["reference_runs"]) == ([6, 3], [3, 3])
+    assert ablation.versus_both(rows, "critic") == []  # the reference lacks a task
+
+
 def test_all_but_entropy_is_the_defaults_with_the_bounded_actions_density() -> None:
     expected = {**pporpe.online.AUTHOR_CHOICES, "entropy_density": "action"}
     assert ablation.VARIANTS["all_but_entropy"] == expected
@@ -114,12 +130,14 @@ def test_markdown_tables_by_hand() -> None:
         "baseline": [{"variant": "amsgrad", "task": "swingup", "p_above": p}],
         "all": [],
     }
-    text = ablation.markdown(rows, comparisons)
+    both = {"baseline": [{"variant": "amsgrad", "p_above": {**p, "value": 0.61}}], "all": []}
+    text = ablation.markdown(rows, comparisons, both)
     lines = text.splitlines()
     # the summary: both tasks on one line per variant, a task not run says so
-    assert lines[2] == "| baseline | not run |  | 300 / 300 / 300 (1/10, 1/10, 1/10) |  |"
-    assert (
-        lines[3] == "| amsgrad | not run |  | 450 / 450 / - (3/10, 3/10, -) | 0.58 [0.42, 0.73] |"
+    assert lines[2] == "| baseline | not run |  | 300 / 300 / 300 (1/10, 1/10, 1/10) |  |  |  |"
+    assert lines[3] == (
+        "| amsgrad | not run |  | 450 / 450 / - (3/10, 3/10, -) | 0.58 [0.42, 0.73] | "
+        "0.61 [0.42, 0.73] |  |"
     )
     lines = lines[5:]
     assert lines[0] == "Swingup (mean score [95% CI], seeds >= 800):"  # no pendulum rows
@@ -181,3 +199,28 @@ def test_find_runs_checks_every_task_before_any_episode(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no finished run folder"):
         pendulum_behaviour.find_runs([tmp_path / "empty"])
+
+
+def test_merged_keeps_the_groups_this_call_does_not_measure() -> None:
+    previous = {
+        "command": "python old.py",
+        "groups": [{"group": "v/swingup/ppo", "runs": 2}, {"group": "w/swingup/ppo", "runs": 1}],
+        "runs": [
+            {"run": "v/swingup/ppo/seed0"},
+            {"run": "v/swingup/ppo/seed1"},
+            {"run": "w/swingup/ppo/seed0"},
+        ],
+    }
+    groups = [{"group": "w/swingup/ppo", "command": "python new.py", "runs": 1}]
+    rows = [{"run": "w/swingup/ppo/seed0", "upright": 0.5}]
+    got_groups, got_rows = pendulum_behaviour.merged(previous, groups, rows)
+    assert got_groups == [
+        {"command": "python old.py", "group": "v/swingup/ppo", "runs": 2},  # kept, its command
+        groups[0],  # re-measured: the new one replaces the old
+    ]
+    assert [r["run"] for r in got_rows] == [
+        "v/swingup/ppo/seed0",
+        "v/swingup/ppo/seed1",
+        "w/swingup/ppo/seed0",
+    ]
+    assert got_rows[-1] == rows[0]

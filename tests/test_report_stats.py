@@ -11,6 +11,7 @@ from scipy import stats
 
 from pporpe.experiments.report import load_results, write_report
 from pporpe.experiments.stats import (
+    average_probability_of_improvement_ci,
     bootstrap_ci,
     iqm,
     probability_of_improvement,
@@ -61,6 +62,40 @@ def test_intervals_are_scipys_bootstrap_and_degenerate_cases_are_points() -> Non
     assert (far.value, far.low, far.high) == (1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="non-empty 1-D"):
         bootstrap_ci([])
+
+
+def test_average_probability_of_improvement_over_tasks() -> None:
+    # By hand: task 1 P = 0.625 (above), task 2 every X below every Y (P = 0): mean 0.3125.
+    pairs = [(SCORES["rpe"], SCORES["ppo"]), ([0.0, 1.0, 2.0], [5.0, 6.0])]
+    est = average_probability_of_improvement_ci(pairs)
+    assert est.value == pytest.approx(0.3125)
+    assert 0.0 <= est.low <= est.value <= est.high <= 0.5  # task 2 is 0 in every resample
+    # Each task weighs the same, whatever its seeds: not the pooled 36-pair statistic.
+    pooled = probability_of_improvement(SCORES["rpe"] + [0.0, 1.0, 2.0], SCORES["ppo"] + [5.0, 6.0])
+    assert est.value != pytest.approx(pooled)
+    # One task is probability_of_improvement_ci itself, interval included.
+    one = average_probability_of_improvement_ci([(SCORES["rpe"], SCORES["ppo"])])
+    assert one.as_dict() == probability_of_improvement_ci(SCORES["rpe"], SCORES["ppo"]).as_dict()
+    # An independent float64 reference of the interval: scipy's BCa over four samples.
+    rng = np.random.default_rng(7)
+    data = [rng.normal(m, 1.0, 10) for m in (0.5, 0.0, 0.0, 0.2)]
+
+    def reference(
+        a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, axis: int
+    ) -> np.ndarray:
+        p1 = (a[..., :, None] > b[..., None, :]) + 0.5 * (a[..., :, None] == b[..., None, :])
+        p2 = (c[..., :, None] > d[..., None, :]) + 0.5 * (c[..., :, None] == d[..., None, :])
+        return (p1.mean(axis=(-1, -2)) + p2.mean(axis=(-1, -2))) / 2
+
+    ref = stats.bootstrap(tuple(data), reference, n_resamples=10_000, method="BCa",
+                          rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
+    got = average_probability_of_improvement_ci([(data[0], data[1]), (data[2], data[3])])
+    assert (got.low, got.high) == pytest.approx((ref.low, ref.high))
+    assert got.value == pytest.approx(float(reference(*data, axis=-1)))
+    with pytest.raises(ValueError, match="one \\(x, y\\) pair"):
+        average_probability_of_improvement_ci([([1.0], [])])
+    with pytest.raises(ValueError, match="one \\(x, y\\) pair"):
+        average_probability_of_improvement_ci([])
 
 
 def write_fixture(root: Path) -> None:

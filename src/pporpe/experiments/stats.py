@@ -22,6 +22,7 @@ from scipy import stats
 __all__ = [
     "N_RESAMPLES",
     "Estimate",
+    "average_probability_of_improvement_ci",
     "bootstrap_ci",
     "iqm",
     "probability_of_improvement",
@@ -119,4 +120,31 @@ def probability_of_improvement_ci(
     if a.size < 2 or b.size < 2 or np.all(np.concatenate([a, b]) == a[0]):
         return Estimate(point, point, point)
     lo, hi = _bootstrap((a, b), probability_of_improvement, level, seed)
+    return Estimate(point, lo, hi)
+
+
+def average_probability_of_improvement_ci(
+    pairs: Sequence[tuple[Sequence[float], Sequence[float]]], level: float = 0.95, seed: int = 0
+) -> Estimate:
+    """The mean over tasks of :func:`probability_of_improvement`, with a bootstrap CI.
+
+    ``pairs`` holds one ``(x, y)`` per task (scores of X and of Y on that task); every
+    task weighs the same whatever its number of seeds (Agarwal et al. 2021's average
+    probability of improvement). The seeds of every sample are resampled independently.
+    """
+    samples = [np.asarray(v, dtype=np.float64) for pair in pairs for v in pair]
+    if not pairs or any(v.ndim != 1 or v.size == 0 for v in samples):
+        raise ValueError("pairs must hold one (x, y) pair of non-empty 1-D score sequences")
+
+    def average(*data: Any, axis: int = -1) -> Any:
+        per_task = [
+            probability_of_improvement(data[i], data[i + 1], axis=axis)
+            for i in range(0, len(data), 2)
+        ]
+        return np.mean(per_task, axis=0)
+
+    point = float(average(*samples))
+    if any(v.size < 2 for v in samples) or np.all(np.concatenate(samples) == samples[0][0]):
+        return Estimate(point, point, point)
+    lo, hi = _bootstrap(tuple(samples), average, level, seed)
     return Estimate(point, lo, hi)
