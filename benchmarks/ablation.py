@@ -184,18 +184,26 @@ def summarize(out: Path, variants: list[str], tasks: list[str]) -> list[dict[str
     return rows
 
 
-def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
-    """P(variant > reference) per variant and task, the methods' runs pooled, with its CI.
-
-    Only where the variant and the reference each have finished runs of all three methods
-    on the task; the pooled run counts are part of each entry (30 when every seed is done).
-    """
+def pool_methods(
+    rows: list[dict[str, Any]],
+) -> tuple[dict[tuple[str, str], list[float]], dict[tuple[str, str], set[str]]]:
+    """Per (variant, task): the scores of its methods' runs pooled, and which methods."""
     pooled: dict[tuple[str, str], list[float]] = {}
     methods: dict[tuple[str, str], set[str]] = {}
     for r in rows:
         key = (r["variant"], r["task"])
         pooled.setdefault(key, []).extend(r["scores"])
         methods.setdefault(key, set()).add(r["method"])
+    return pooled, methods
+
+
+def versus(rows: list[dict[str, Any]], reference: str) -> list[dict[str, Any]]:
+    """P(variant > reference) per variant and task, the methods' runs pooled, with its CI.
+
+    Only where the variant and the reference each have finished runs of all three methods
+    on the task; the pooled run counts are part of each entry (30 when every seed is done).
+    """
+    pooled, methods = pool_methods(rows)
     out = []
     for (variant, task), scores in pooled.items():
         ref = (reference, task)
@@ -223,12 +231,7 @@ def versus_both(rows: list[dict[str, Any]], reference: str) -> list[dict[str, An
     for every task. Only variants with finished runs of all three methods on every task
     of :data:`THRESHOLD`, as has the reference; the pooled run counts per task are part
     of each entry (30 when every seed is done)."""
-    pooled: dict[tuple[str, str], list[float]] = {}
-    methods: dict[tuple[str, str], set[str]] = {}
-    for r in rows:
-        key = (r["variant"], r["task"])
-        pooled.setdefault(key, []).extend(r["scores"])
-        methods.setdefault(key, set()).add(r["method"])
+    pooled, methods = pool_methods(rows)
 
     def complete(variant: str) -> bool:
         return all(methods.get((variant, t)) == set(METHODS) for t in THRESHOLD)
@@ -258,7 +261,11 @@ def fmt(ci: dict[str, float]) -> str:
     return f"{ci['value']:7.1f} [{ci['low']:7.1f}, {ci['high']:7.1f}]"
 
 
-METHOD_NAMES = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
+def fmt_p(p: dict[str, float]) -> str:
+    """A probability with its CI, two decimals: ``0.58 [0.42, 0.72]``."""
+    return f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+
+
 TASK_NAMES = {"pendulum": "InvertedPendulum", "swingup": "Swingup"}
 
 
@@ -315,16 +322,10 @@ def markdown(
     probs: dict[tuple[str, str, str], str] = {}
     for ref, table in comparisons.items():
         for v in table:
-            p = v["p_above"]
-            probs[(v["task"], v["variant"], ref)] = (
-                f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
-            )
+            probs[(v["task"], v["variant"], ref)] = fmt_p(v["p_above"])
     for ref, table in (both or {}).items():
         for v in table:
-            p = v["p_above"]
-            probs[("both", v["variant"], ref)] = (
-                f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
-            )
+            probs[("both", v["variant"], ref)] = fmt_p(v["p_above"])
     lines = [*summary_table(rows, probs), ""]
     for task in THRESHOLD:
         variants = [v for (t, v) in cells if t == task]
@@ -409,8 +410,7 @@ def main() -> None:
             continue
         print(f"\nP(variant > {ref}), the three methods' runs pooled [95% CI]:")
         for v in shown:
-            p = v["p_above"]
-            ci = f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+            ci = fmt_p(v["p_above"])
             runs = f"({v['runs']} vs {v['reference_runs']} runs)"
             print(f"{v['variant']:{w}s} {v['task']:9s} {ci}  {runs}")
     for ref, table in both.items():
@@ -419,8 +419,7 @@ def main() -> None:
             continue
         print(f"\nP(variant > {ref}), mean over both tasks [95% CI]:")
         for v in shown:
-            p = v["p_above"]
-            print(f"{v['variant']:{w}s} {p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]")
+            print(f"{v['variant']:{w}s} {fmt_p(v['p_above'])}")
     payload = {
         "variants": {n: variant_settings(n) for n in names},
         "rows": every,

@@ -224,3 +224,17 @@ def test_merged_keeps_the_groups_this_call_does_not_measure() -> None:
         "w/swingup/ppo/seed0",
     ]
     assert got_rows[-1] == rows[0]
+
+
+def test_merge_refuses_a_file_measured_with_other_settings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "behaviour.json"
+    out.write_text(json.dumps({"episodes": 3, "groups": [], "runs": []}))  # no seed: the default
+    argv = ["pendulum_behaviour.py", str(tmp_path), "--json", str(out), "--merge"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--episodes", "2"])
+    with pytest.raises(SystemExit):
+        pendulum_behaviour.main()
+    err = capsys.readouterr().err
+    assert "was measured with --episodes 3 --seed 10000; got --episodes 2 --seed 10000" in err
+    assert json.loads(out.read_text())["episodes"] == 3  # untouched
