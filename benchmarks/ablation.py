@@ -3,7 +3,9 @@
 Each *variant* is the baseline (pporpe 0.2's choices, ``V0_2_CHOICES``) with one change,
 or all changes together (``AUTHOR_CHOICES``, pporpe 0.3's defaults), or all but the
 entropy density (``all_but_entropy``), or any combination of the changes named with ``+``
-(``amsgrad+td_units``: pporpe 0.2's choices with those two changes); every variant runs
+(``amsgrad+td_units``: pporpe 0.2's choices with those two changes;
+``td_units+amsgrad+layer_norm+trace_kl`` is ``V0_4_CHOICES``, pporpe's defaults since
+0.4); every variant runs
 the paper's comparison (PPO, PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the
 paper's 200 episodes with 10 seeds, through the grid machinery (populations, checkpoints,
 resume). It prints, per variant, task and method:
@@ -50,7 +52,7 @@ from pporpe.experiments.stats import (
     probability_of_improvement_ci,
 )
 from pporpe.io import atomic_write_text
-from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES
+from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES, V0_4_CHOICES
 from pporpe.runs.logger import read_records
 
 AUTHOR: dict[str, dict[str, Any]] = {
@@ -76,9 +78,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "all_but_entropy": combined(name for name in AUTHOR if name != "entropy"),
 }
 """Each variant's learner settings, every choice explicit (pporpe 0.3's defaults are
-"all"). "all_but_entropy" is all changes except the pre-squash entropy density, the one
-that alone makes Swingup worse (docs/online-learner.md)."""
+"all"; 0.4's are the combination ``td_units+amsgrad+layer_norm+trace_kl``).
+"all_but_entropy" is all changes except the pre-squash entropy density, the one that alone
+makes Swingup worse (docs/online-learner.md)."""
 assert VARIANTS["all"] == dict(AUTHOR_CHOICES)
+assert combined(["td_units", "amsgrad", "layer_norm", "trace_kl"]) == dict(V0_4_CHOICES)
 
 
 def variant_settings(name: str) -> dict[str, Any]:

@@ -57,9 +57,16 @@ def test_versus_both_averages_the_tasks_and_needs_every_method_on_both() -> None
     assert ablation.versus_both(rows, "critic") == []  # the reference lacks a task
 
 
-def test_all_but_entropy_is_the_defaults_with_the_bounded_actions_density() -> None:
+def test_all_but_entropy_is_the_authors_choices_with_the_bounded_actions_density() -> None:
     expected = {**pporpe.online.AUTHOR_CHOICES, "entropy_density": "action"}
     assert ablation.VARIANTS["all_but_entropy"] == expected
+    # pporpe 0.4's defaults: the author's choices but the critic signal and the density
+    defaults = ablation.variant_settings("trace_kl+layer_norm+amsgrad+td_units")
+    assert defaults == dict(pporpe.online.V0_4_CHOICES)
+    assert {k for k in defaults if defaults[k] != pporpe.online.AUTHOR_CHOICES[k]} == {
+        "critic_signal",
+        "entropy_density",
+    }
     assert pporpe.online.V0_2_CHOICES["entropy_density"] == "action"
     assert ablation.VARIANTS["critic"] == {
         **pporpe.online.V0_2_CHOICES,

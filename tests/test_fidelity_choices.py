@@ -227,15 +227,22 @@ def test_bad_choice_is_refused_by_name(field: str, value: object) -> None:
         OnlineConfig(**{field: value})  # type: ignore[arg-type]
 
 
-def test_defaults_are_the_authors_choices_and_v0_2_restores_the_old_learner() -> None:
-    """pporpe 0.3 adopts the author's test-bed choices (the ablation's "all" variant)."""
-    from pporpe.online.config import AUTHOR_CHOICES
+def test_defaults_are_the_authors_choices_but_the_two_the_ablation_rejected() -> None:
+    """pporpe 0.4's defaults are the author's test-bed choices except the critic signal
+    and the entropy density (V0_4_CHOICES); AUTHOR_CHOICES is pporpe 0.3's learner and
+    V0_2_CHOICES pporpe 0.2's, each differing from the defaults where it should."""
+    from pporpe.online.config import AUTHOR_CHOICES, V0_4_CHOICES
 
-    assert set(AUTHOR_CHOICES) == set(V0_2_CHOICES)
+    assert set(AUTHOR_CHOICES) == set(V0_2_CHOICES) == set(V0_4_CHOICES)
     default = OnlineConfig()
-    assert {k: getattr(default, k) for k in AUTHOR_CHOICES} == dict(AUTHOR_CHOICES)
+    assert {k: getattr(default, k) for k in V0_4_CHOICES} == dict(V0_4_CHOICES)
+    assert (default.critic_signal, default.entropy_density) == ("td", "action")
+    author = OnlineConfig(**AUTHOR_CHOICES)  # type: ignore[arg-type]
+    differs = {k for k in AUTHOR_CHOICES if getattr(author, k) != getattr(default, k)}
+    assert differs == {"critic_signal", "entropy_density"}
     old = OnlineConfig(**V0_2_CHOICES)  # type: ignore[arg-type]
-    assert all(getattr(old, k) != getattr(default, k) for k in AUTHOR_CHOICES)
+    differs = {k for k in V0_2_CHOICES if getattr(old, k) != getattr(default, k)}
+    assert differs == set(V0_2_CHOICES) - {"critic_signal", "entropy_density"}
 
 
 def test_run_folders_written_before_the_choices_existed_keep_what_they_ran_with(

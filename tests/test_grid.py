@@ -24,6 +24,7 @@ from pporpe.experiments.reproduce import (
     reproduce,
     run_progress,
 )
+from pporpe.online import AUTHOR_CHOICES, V0_4_CHOICES
 from pporpe.runs.logger import read_records
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,6 +74,14 @@ def test_repository_specs_parse() -> None:
         assert b.config == (replace(a.config, episodes=2000) if long else a.config)
     quick = load_spec(ROOT / "experiments" / "quick.toml")
     assert set(quick.methods) == {"ppo", "rb", "rpe"} and len(quick.runs) < len(paper.runs)
+    # The paper's reproduction keeps the author's choices (those results/paper ran with),
+    # the quick grid runs pporpe's defaults.
+    for run in paper.runs:
+        learner = run.config.learner
+        assert {k: getattr(learner, k) for k in AUTHOR_CHOICES} == dict(AUTHOR_CHOICES)
+    for run in quick.runs:
+        learner = run.config.learner
+        assert {k: getattr(learner, k) for k in V0_4_CHOICES} == dict(V0_4_CHOICES)
 
 
 def test_spec_overrides_reach_the_learner(tmp_path: Path) -> None:

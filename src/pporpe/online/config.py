@@ -29,6 +29,7 @@ __all__ = [
     "TD_UNITS",
     "TRACE_DIVERGENCES",
     "V0_2_CHOICES",
+    "V0_4_CHOICES",
     "OnlineConfig",
     "TrainConfig",
 ]
@@ -56,8 +57,9 @@ AUTHOR_CHOICES: Mapping[str, Any] = MappingProxyType(
         "trace_divergence": "analytic",
     }
 )
-"""The choices where the paper is silent, as the author's test bed makes them: pporpe's
-defaults since 0.3."""
+"""The choices where the paper is silent, as the author's test bed makes them: pporpe
+0.3's defaults (``OnlineConfig(**AUTHOR_CHOICES)``), and the settings of the committed
+reproduction of the paper (experiments/paper.toml, results/paper)."""
 
 V0_2_CHOICES: Mapping[str, Any] = MappingProxyType(
     {
@@ -73,14 +75,28 @@ V0_2_CHOICES: Mapping[str, Any] = MappingProxyType(
 """The same fields as pporpe 0.2 set them (``OnlineConfig(**V0_2_CHOICES)``); also what a
 run folder written before these fields existed ran with."""
 
+V0_4_CHOICES: Mapping[str, Any] = MappingProxyType(
+    {
+        **AUTHOR_CHOICES,
+        "critic_signal": V0_2_CHOICES["critic_signal"],
+        "entropy_density": V0_2_CHOICES["entropy_density"],
+    }
+)
+"""pporpe's defaults since 0.4: the author's choices but two, the critic trained with the
+TD error (``critic_signal="td"``) and the entropy bonus of the bounded action
+(``entropy_density="action"``), each of which made the learner worse in the ablation
+(benchmarks/ablation.py, docs/online-learner.md)."""
+
 
 @dataclass(frozen=True)
 class OnlineConfig:
     """Settings of the paper's online actor-critic learner (Algorithm 1, Table I).
 
-    Defaults are the paper's. Where the paper is silent, they follow the author's public
-    test bed (:data:`AUTHOR_CHOICES`, adopted in pporpe 0.3 on the ablation's evidence,
-    docs/online-learner.md); :data:`V0_2_CHOICES` restores pporpe 0.2's learner.
+    Defaults are the paper's. Where the paper is silent, they are :data:`V0_4_CHOICES`:
+    the author's public test bed (:data:`AUTHOR_CHOICES`) except for the two choices the
+    ablation measured to make the learner worse (docs/online-learner.md).
+    ``OnlineConfig(**AUTHOR_CHOICES)`` is pporpe 0.3's learner and
+    ``OnlineConfig(**V0_2_CHOICES)`` pporpe 0.2's.
     Optimiser constants the paper leaves at "default" are documented in
     :class:`pporpe.online.optim.TDAmsProp`.
     """
@@ -125,21 +141,24 @@ class OnlineConfig:
     beta_de: float = 0.01
     """Gain beta_DE >= 0 of entropy regularisation (SAC-style)."""
     td_units: TDUnits = "unscaled"
-    """Units of delta in the TD regulariser: ``"unscaled"`` (default, the author's test
+    """Units of delta in the TD regulariser: ``"unscaled"`` (default, as the author's test
     bed), beta_TD * (delta / (1 - gamma))^2, or ``"scaled"`` (pporpe 0.2), beta_TD *
     delta^2 with delta in scaled-reward units, 1 / (1 - gamma)^2 = 10^4 times weaker at
     gamma = 0.99."""
-    entropy_density: EntropyDensity = "pre_squash"
-    """Log-density in the entropy regulariser: of the pre-map variable u
-    (``"pre_squash"``, default, the author's test bed), or of the bounded action, the
-    map's Jacobian included (``"action"``, pporpe 0.2)."""
-    critic_signal: CriticSignal = "actor"
-    """What trains the value network: the actor's signal and weight (``"actor"``, default:
-    A * rho_dagger * grad V with rho_dagger = obj(rho, A) / A detached, the surrogate's
-    effective ratio; the author's test bed trains both networks with
-    -A * rho_w * (V + log pi)), or the TD error (``"td"``: delta * grad V, pporpe 0.2)."""
+    entropy_density: EntropyDensity = "action"
+    """Log-density in the entropy regulariser: of the bounded action, the map's Jacobian
+    included (``"action"``, default, as pporpe 0.2), or of the pre-map variable u
+    (``"pre_squash"``, the author's test bed and pporpe 0.3: its bonus does not penalise
+    a location in the map's saturated tails, and on Swingup its policies drive the cart
+    at the action bounds)."""
+    critic_signal: CriticSignal = "td"
+    """What trains the value network: the TD error (``"td"``, default, as pporpe 0.2:
+    delta * grad V), or the actor's signal and weight (``"actor"``, the author's test bed
+    and pporpe 0.3: A * rho_dagger * grad V with rho_dagger = obj(rho, A) / A detached,
+    the surrogate's effective ratio; the test bed trains both networks with
+    -A * rho_w * (V + log pi))."""
     trace_divergence: TraceDivergence = "analytic"
-    """Divergence that cuts the adaptive traces: ``"analytic"`` (default, the author's
+    """Divergence that cuts the adaptive traces: ``"analytic"`` (default, as the author's
     test bed), KL(pi || pi_b) between the two policies at s_t (a normal-gamma
     approximation for the student-t) + (V - V_b)^2 / 2, or ``"sample"`` (pporpe 0.2),
     (rho - 1 - log rho) + (V - V_b)^2 at the sampled action."""

@@ -12,21 +12,22 @@ One step, for every active member at once:
 
 1. one forward pass over ``[s_t; s_{t+1}]`` of all 3K networks (policy, value, target)
    stacked in ``P [3, K, n_pad]`` (:mod:`pporpe.nn.batched`);
-2. with ``rho = exp(log pi(u_t|s_t) - log pi_b)``, ``sigma = sign(A)`` and the defaults
-   (the author's choices; the pporpe 0.2 alternatives in brackets, ``OnlineConfig``)::
+2. with ``rho = exp(log pi(u_t|s_t) - log pi_b)``, ``sigma = sign(A)`` and the author's
+   choices (``AUTHOR_CHOICES``; the alternatives in brackets, ``OnlineConfig``)::
 
        delta = r * reward_scale + gamma [not terminated] V_target(s_{t+1}) - V(s_t)
        A     = delta - (1 - gamma)(beta_TD (delta / (1 - gamma))^2 + beta_DE log pi(u_t|s_t))
        d     = max(KL(pi || pi_b)(s_t), 0) + (V(s_t) - V_b(s_t))^2 / 2
 
-   [``td_units="scaled"``: beta_TD delta^2; ``entropy_density="action"``: the density of
-   the bounded action, the map's Jacobian included; ``trace_divergence="sample"``:
-   d = (rho - 1 - log rho) + (V(s_t) - V_b(s_t))^2]. The per-unit-signal gradient
-   ``g = grad[-sigma obj(rho, sigma)]`` (policy) ``+ grad[-V(s_t)]`` (value) is the
-   hand-written backward of row s_t, fed with ``d(-sigma obj)/d raw`` from autograd on
-   the tiny head (surrogates of :mod:`pporpe.surrogates`, grouped by unique surrogate
-   settings). The value block's signal is ``A rho_dagger`` with
-   ``rho_dagger = sigma obj(rho, sigma)`` (``critic_signal="actor"``) [``"td"``: delta];
+   [``td_units="scaled"``: beta_TD delta^2; ``entropy_density="action"`` (the default):
+   the density of the bounded action, the map's Jacobian included;
+   ``trace_divergence="sample"``: d = (rho - 1 - log rho) + (V(s_t) - V_b(s_t))^2]. The
+   per-unit-signal gradient ``g = grad[-sigma obj(rho, sigma)]`` (policy)
+   ``+ grad[-V(s_t)]`` (value) is the hand-written backward of row s_t, fed with
+   ``d(-sigma obj)/d raw`` from autograd on the tiny head (surrogates of
+   :mod:`pporpe.surrogates`, grouped by unique surrogate settings). The value block's
+   signal is ``A rho_dagger`` with ``rho_dagger = sigma obj(rho, sigma)``
+   (``critic_signal="actor"``) [``"td"``, the default: delta];
 3. ``u_{t+1}`` is sampled from the row s_{t+1} with theta_t (before the update), from
    the member's own noise stream (:mod:`pporpe.online.noise`);
 4. traces, td-AmsProp and the t-soft target update (:mod:`pporpe.online.update`).

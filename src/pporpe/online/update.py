@@ -18,7 +18,7 @@ Traces, with ``c1 = gamma lambda1 decay``, ``c2 = gamma lambda2 decay``::
 
 (``r`` takes ``e`` where ``(e - r) sign(e) >= 0``). The optimiser's gradient is
 ``q = A r`` on the policy block and, on the value block, ``q = A rho_dagger r``
-(``critic_signal="actor"``, the default) or ``q = delta r`` (``"td"``).
+(``critic_signal="actor"``) or ``q = delta r`` (``"td"``, the default).
 
 td-AmsProp at step t (``bc_i = 1 - beta_i^t``; ``vmax_s = vmax * bc2`` as in TDAmsProp)::
 
