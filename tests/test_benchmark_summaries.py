@@ -178,6 +178,35 @@ def test_a_chunks_summary_json_keeps_every_variant_on_disk(
     assert "amsgrad " in printed and "baseline " not in printed.split("P(variant")[0]
 
 
+def test_versus_names_the_references_and_refuses_an_unknown_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    source = ROOT / "benchmarks" / "results" / "ablation"
+    for variant in ("baseline", "amsgrad"):
+        for method in ablation.METHODS:
+            run = Path(variant) / "pendulum" / method / "seed0"
+            shutil.copytree(source / run, tmp_path / run)
+    out, md = tmp_path / "ablation.json", tmp_path / "ablation.md"
+    files = ["--out", str(tmp_path), "--json", str(out), "--markdown", str(md)]
+    argv = ["ablation.py", "--summarize", "--variants", "baseline", "--tasks", "pendulum"]
+    monkeypatch.setattr(sys, "argv", [*argv, *files])
+    ablation.main()  # the default references: baseline, all and the optimiser change alone
+    payload = json.loads(out.read_text())
+    assert list(payload["versus"]) == list(ablation.REFERENCES)
+    (entry,) = payload["versus"]["amsgrad"]
+    assert (entry["variant"], entry["task"], entry["runs"]) == ("baseline", "pendulum", 3)
+    rows = ablation.summarize(tmp_path, ["baseline", "amsgrad"], ["pendulum"])
+    assert entry["p_above"] == ablation.versus(rows, "amsgrad")[0]["p_above"]
+    assert "P(variant > amsgrad)" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", [*argv, *files, "--versus", "amsgrad"])
+    ablation.main()
+    assert list(json.loads(out.read_text())["versus"]) == ["amsgrad"]
+    monkeypatch.setattr(sys, "argv", [*argv, *files, "--versus", "nope"])
+    with pytest.raises(SystemExit):
+        ablation.main()
+    assert "variant must be one of" in capsys.readouterr().err
+
+
 def test_episode_stats_by_hand() -> None:
     # Four steps: the first half hangs down, the second half is upright (0 and 0.1 rad).
     angles = np.array([np.pi, -np.pi + 0.1, 0.0, 0.1])
