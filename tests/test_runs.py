@@ -43,18 +43,44 @@ def records_without_time(records: list[Any]) -> list[dict[str, Any]]:
     return [{k: v for k, v in r.__dict__.items() if k != "wall_time"} for r in records]
 
 
+# The fixture was made on another CPU. PyTorch and MKL pick their vectorised kernels by the
+# CPU (AVX2, AVX-512) and sum in another order, so the *learned* floats of the batch learner
+# can differ in their last bits from one machine to the next: on an AVX-512 Xeon (2026-12-02)
+# the records' reg_amount was 1.7e-5 relative away from the fixture, ratio_dev 2.6e-6 and
+# theta_sum 3.7e-7, with every episode, return and test return equal. Same machine, same
+# numbers is tested exactly elsewhere (test_same_seed_same_numbers in test_batch.py and
+# test_online.py); here a change of the algorithm, which moves these numbers by orders of
+# magnitude more, is what must fail.
+MACHINE_RTOL = 1e-4
+EXACT_FIELDS = ("episode", "total_steps", "ret", "length", "past_threshold")
+
+
 def assert_same_records(records: list[Any], expected: list[dict[str, Any]]) -> None:
-    """Equal records; ``trace_decay`` (a logged per-episode mean of float32 values) to the
-    last bit of float32 only: pporpe 0.1.0 averaged a strided column of a stacked
-    ``[steps, 5]`` tensor, which sums the same values in another order than a contiguous
-    1-D tensor. Every other field, and every learned number, is compared exactly."""
+    """Equal records: the environment's numbers (episode, steps, return, length) and the count
+    past the threshold exactly, the learned floats (regularisation amount, trace decay, ratio
+    deviation) to ``MACHINE_RTOL``, since the fixture may come from another CPU."""
     got = records_without_time(records)
-    assert [{k: v for k, v in r.items() if k != "trace_decay"} for r in got] == [
-        {k: v for k, v in r.items() if k != "trace_decay"} for r in expected
+    assert len(got) == len(expected)
+    assert [{k: r[k] for k in EXACT_FIELDS} for r in got] == [
+        {k: r[k] for k in EXACT_FIELDS} for r in expected
     ]
-    np.testing.assert_allclose(
-        [r["trace_decay"] for r in got], [r["trace_decay"] for r in expected], rtol=2e-7
-    )
+    assert set(got[0]) == set(expected[0])
+    for field in sorted(set(expected[0]) - set(EXACT_FIELDS)):
+        np.testing.assert_allclose(
+            [r[field] for r in got],
+            [r[field] for r in expected],
+            rtol=MACHINE_RTOL,
+            err_msg=field,
+        )
+
+
+def assert_same_theta(theta: torch.Tensor, expected: dict[str, Any]) -> None:
+    """The final parameters' sum, absolute sum and first eight values, to ``MACHINE_RTOL``."""
+    got = theta_summary(theta)
+    for key in ("theta_sum", "theta_abs_sum", "theta_head"):
+        np.testing.assert_allclose(
+            got[key], expected[key], rtol=MACHINE_RTOL, atol=1e-7, err_msg=key
+        )
 
 
 def theta_summary(theta: torch.Tensor) -> dict[str, Any]:
@@ -90,9 +116,7 @@ def test_same_numbers_as_before_the_reshape(name: str, tmp_path: Path) -> None:
     assert result.evaluation is not None
     assert result.evaluation.returns == expected["eval_returns"]
     state = torch.load(tmp_path / name / "checkpoint.pt", weights_only=False)
-    assert theta_summary(state["learner"]["theta"]) == {
-        k: expected[k] for k in ("theta_sum", "theta_abs_sum", "theta_head")
-    }
+    assert_same_theta(state["learner"]["theta"], expected)
 
 
 def test_config_json_records_the_kind(tmp_path: Path) -> None:
