@@ -32,6 +32,7 @@ from pporpe.runs import (
     register_kind,
     train,
 )
+from pporpe.runs.folder import CHECKPOINT, load_checkpoint, save_checkpoint
 from pporpe.runs.kinds import kinds
 from pporpe.runs.loop import run_queue
 
@@ -104,11 +105,13 @@ def fixture_config(name: str) -> Any:
 
 @pytest.mark.parametrize("name", ["batch"])
 def test_same_numbers_as_before_the_reshape(name: str, tmp_path: Path) -> None:
-    """Records, test returns and final parameters equal those pporpe 0.1.0 produced.
+    """Records, test returns and final parameters equal those pporpe 0.1.0 produced (the
+    learned floats to ``MACHINE_RTOL``).
 
     The online learner passed this test after the reshape too (commit 8917f60); the
     population learner that replaced it draws its samples from a generator per run, so
-    its numbers are new (see test_online_numbers_are_stable)."""
+    its numbers are new: tests/test_population.py checks them against the scalar reference
+    learner, and test_online.py's test_same_seed_same_numbers its determinism."""
     expected = BEHAVIOUR[name]
     cfg = fixture_config(name)
     result = train(cfg, tmp_path / name, progress=False)
@@ -334,14 +337,49 @@ def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -
     with pytest.raises(Stop):
         run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b", on_episode=stop_late)
     pop = json.loads((tmp_path / "b" / "population.json").read_text())
-    assert pop["slots"] == [str(tmp_path / "b" / "r1"), str(tmp_path / "b" / "r3")]
-    resumed = run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b")
+    assert pop["slots"] == ["r1", "r3"]  # relative to the home folder
+    # resumed from another place (another checkout, another machine): nothing is lost
+    shutil.move(tmp_path / "b", tmp_path / "moved")
+    resumed = run_queue(queue(tmp_path / "moved"), capacity=2, home=tmp_path / "moved")
     assert [records_without_time(r.records) for r in resumed] == [
         records_without_time(r.records) for r in full
     ]
     assert [r.resumed_from for r in resumed] == [4, 2, 2]
     with pytest.raises(ValueError, match="needs a home folder"):
         run_queue(queue(tmp_path / "c"), capacity=2)
+
+
+def test_a_population_checkpoint_of_pporpe_0_4_0_with_full_paths_resumes(tmp_path: Path) -> None:
+    """Up to pporpe 0.4.0 the population checkpoint named run folders by their full paths;
+    such a checkpoint still resumes where it stopped."""
+    register_kind(CountKind())
+    cfgs = [CountConfig(seed=1, episodes=6), CountConfig(seed=2, episodes=2),
+            CountConfig(seed=3, episodes=4)]  # fmt: skip
+    runs = [(c, tmp_path / f"r{c.seed}") for c in cfgs]
+
+    seen: list[Any] = []
+
+    def stop_at_9th(rec: Any) -> None:
+        seen.append(rec)
+        if len(seen) == 9:
+            raise Interrupted
+
+    with pytest.raises(Interrupted):
+        run_queue(runs, capacity=2, home=tmp_path, on_episode=stop_at_9th)
+    state = load_checkpoint(tmp_path)
+    full = {name: str(tmp_path / name) for name in state["runs"]}
+    old = {
+        **state,
+        "runs": [full[n] for n in state["runs"]],
+        "slots": [full[n] if n else None for n in state["slots"]],
+        "queue": [full[n] for n in state["queue"]],
+        "members": {full[n]: m for n, m in state["members"].items()},
+    }
+    assert old["slots"] == [str(tmp_path / "r1"), str(tmp_path / "r3")]
+    save_checkpoint(tmp_path / CHECKPOINT, old)
+    resumed = run_queue(runs, capacity=2, home=tmp_path)
+    assert [r.resumed_from for r in resumed] == [4, 2, 2]
+    assert [len(r.records) for r in resumed] == [6, 2, 4]
 
 
 def test_idle_slots_are_compacted_away_and_the_layout_resumes(tmp_path: Path) -> None:
@@ -374,7 +412,7 @@ def test_an_online_population_compacts_and_resumes_identically(tmp_path: Path) -
     with pytest.raises(Interrupted):
         run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b", on_episode=at_episode(7))
     saved = json.loads((tmp_path / "b" / "population.json").read_text())
-    assert saved["slots"] == [str(tmp_path / "b" / "s1")]  # compacted before the stop
+    assert saved["slots"] == ["s1"]  # compacted before the stop
     again = run_queue(runs(tmp_path / "b"), capacity=3, home=tmp_path / "b")
     assert [records_without_time(r.records) for r in again] == [
         records_without_time(r.records) for r in full

@@ -14,12 +14,13 @@ to K slots (K = 1 for a single run; the online learner trains K runs in lockstep
    (``evaluation.json``), then ``done.json``; the slot takes the next run of the queue.
 
 A run that fails alone (a non-finite value) leaves its message in ``error.txt`` and the
-others go on. With several slots, the loop keeps the population's checkpoint in a home folder: every
-member's state at one step together with the packing (which run is in which slot, what is
-still queued), in one atomic file, and ``population.json`` as a readable copy of the
-packing. A restarted queue resumes with the same packing at the same step and produces the
-same numbers as an uninterrupted one; each run's own ``checkpoint.pt`` is written when it
-finishes.
+others go on. With several slots, the loop keeps the population's checkpoint in a home
+folder: every member's state at one step together with the packing (which run is in which
+slot, what is still queued; run folders named relative to the home folder), in one atomic
+file, and ``population.json`` as a readable copy of the packing. A restarted queue, also
+from an output folder moved or copied elsewhere, resumes with the same packing at the same
+step and produces the same numbers as an uninterrupted one; each run's own
+``checkpoint.pt`` is written when it finishes.
 When the queue is empty and at most half the slots are busy, the trainer is compacted to
 the busy runs (idle slots of a population would still cost compute). A killed run loses
 at most the work since its last checkpoint; records never have a gap or a duplicate.
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -226,23 +228,31 @@ def run_queue(
     # a population's checkpoint: every member at one step, with the packing, in one file
     pop_ckpt = pop_file.with_name(CHECKPOINT) if pop_file is not None else None
     members: dict[str, dict[str, Any]] = {}
+    # The packing names run folders relative to the home folder, so that an output folder
+    # moved or copied elsewhere (another checkout, another machine) resumes from its
+    # population checkpoint; pporpe 0.4.0 and earlier named them by their full paths.
+    names = [os.path.relpath(d, home) for d in dirs] if home is not None else []
+    name_of = dict(zip(map(str, dirs), names, strict=False))  # run folder -> its name
     if pop_ckpt is not None and pop_ckpt.is_file():
         saved = load_checkpoint(pop_ckpt.parent)
-        if saved.get("runs") == [str(d) for d in dirs]:  # the same job: the same packing
-            by_dir = {str(d): i for i, d in enumerate(dirs)}
+        for spelling in (names, [str(d) for d in dirs]):
+            if saved.get("runs") != spelling:
+                continue  # not the same job, or not this spelling of it
+            by_dir = {name: i for i, name in enumerate(spelling)}
             slots = [by_dir.get(d) if d else None for d in saved["slots"]]
             slots = [i if i in pending else None for i in slots]
             queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
             capacity = len(slots)
-            members = saved["members"]
+            members = {names[by_dir[k]]: v for k, v in saved["members"].items() if k in by_dir}
+            break
     trainer = kind.make_trainer(cfgs[pending[0]], capacity)
     books: dict[int, _Run] = {}
 
     def packing() -> dict[str, Any]:
         return {
-            "runs": [str(d) for d in dirs],
-            "slots": [str(dirs[i]) if i is not None else None for i in slots],
-            "queue": [str(dirs[i]) for i in queue],
+            "runs": names,
+            "slots": [names[i] if i is not None else None for i in slots],
+            "queue": [names[i] for i in queue],
         }
 
     def write_population() -> None:
@@ -262,7 +272,7 @@ def run_queue(
         states = {}
         for slot, book in list(books.items()):
             try:
-                states[str(book.run)] = book.state(trainer, slot)
+                states[name_of[str(book.run)]] = book.state(trainer, slot)
             except NonFiniteError as exc:
                 fail(slot, str(exc))
         save_checkpoint(pop_ckpt, {**packing(), "members": states})
@@ -271,7 +281,7 @@ def run_queue(
 
     def begin(slot: int, i: int) -> None:
         run = dirs[i]
-        state = members.pop(str(run), None)
+        state = members.pop(name_of.get(str(run), ""), None)
         if state is None and (run / CHECKPOINT).exists():
             state = load_checkpoint(run)
         book = _Run(kind, cfgs[i], run, bar=progress and capacity == 1)
@@ -291,7 +301,7 @@ def run_queue(
         assert i is not None
         atomic_write_text(book.run / "error.txt", message + "\n")
         if pop_ckpt is not None and pop_ckpt.is_file():  # its last good state, in its folder
-            last = load_checkpoint(pop_ckpt.parent)["members"].get(str(book.run))
+            last = load_checkpoint(pop_ckpt.parent)["members"].get(name_of[str(book.run)])
             if last is not None:
                 save_checkpoint(book.run / CHECKPOINT, last)
         book.close()
