@@ -56,10 +56,16 @@ MACHINE_RTOL = 1e-4
 EXACT_FIELDS = ("episode", "total_steps", "ret", "length", "past_threshold")
 
 
-def assert_same_records(records: list[Any], expected: list[dict[str, Any]]) -> None:
+def assert_same_records(
+    records: list[Any], expected: list[dict[str, Any]], learned_rtol: float = 0.0
+) -> None:
     """Equal records: the environment's numbers (episode, steps, return, length) and the count
-    past the threshold exactly, the learned floats (regularisation amount, trace decay, ratio
-    deviation) to ``MACHINE_RTOL``, since the fixture may come from another CPU."""
+    past the threshold exactly; the learned floats (regularisation amount, ratio deviation)
+    to ``learned_rtol`` (0: exactly; ``MACHINE_RTOL`` for numbers recomputed on a machine
+    that may not be the fixture's); ``trace_decay`` (a logged per-episode mean of float32
+    values) to the last bit of float32: pporpe 0.1.0 averaged a strided column of a stacked
+    ``[steps, 5]`` tensor, which sums the same values in another order than a contiguous
+    1-D tensor."""
     got = records_without_time(records)
     assert len(got) == len(expected)
     assert [{k: r[k] for k in EXACT_FIELDS} for r in got] == [
@@ -70,7 +76,8 @@ def assert_same_records(records: list[Any], expected: list[dict[str, Any]]) -> N
         np.testing.assert_allclose(
             [r[field] for r in got],
             [r[field] for r in expected],
-            rtol=MACHINE_RTOL,
+            rtol=2e-7 if field == "trace_decay" else learned_rtol,
+            atol=0.0,
             err_msg=field,
         )
 
@@ -115,7 +122,7 @@ def test_same_numbers_as_before_the_reshape(name: str, tmp_path: Path) -> None:
     expected = BEHAVIOUR[name]
     cfg = fixture_config(name)
     result = train(cfg, tmp_path / name, progress=False)
-    assert_same_records(result.records, expected["records"])
+    assert_same_records(result.records, expected["records"], learned_rtol=MACHINE_RTOL)
     assert result.evaluation is not None
     assert result.evaluation.returns == expected["eval_returns"]
     state = torch.load(tmp_path / name / "checkpoint.pt", weights_only=False)

@@ -231,20 +231,19 @@ def run_queue(
     # The packing names run folders relative to the home folder, so that an output folder
     # moved or copied elsewhere (another checkout, another machine) resumes from its
     # population checkpoint; pporpe 0.4.0 and earlier named them by their full paths.
-    names = [os.path.relpath(d, home) for d in dirs] if home is not None else []
-    name_of = dict(zip(map(str, dirs), names, strict=False))  # run folder -> its name
+    names = [os.path.relpath(d, home) if home is not None else str(d) for d in dirs]
     if pop_ckpt is not None and pop_ckpt.is_file():
         saved = load_checkpoint(pop_ckpt.parent)
-        for spelling in (names, [str(d) for d in dirs]):
-            if saved.get("runs") != spelling:
-                continue  # not the same job, or not this spelling of it
+        spelling = next(  # the same job (the same runs), in either spelling
+            (s for s in (names, [str(d) for d in dirs]) if saved.get("runs") == s), None
+        )
+        if spelling is not None:
             by_dir = {name: i for i, name in enumerate(spelling)}
             slots = [by_dir.get(d) if d else None for d in saved["slots"]]
             slots = [i if i in pending else None for i in slots]
             queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
             capacity = len(slots)
             members = {names[by_dir[k]]: v for k, v in saved["members"].items() if k in by_dir}
-            break
     trainer = kind.make_trainer(cfgs[pending[0]], capacity)
     books: dict[int, _Run] = {}
 
@@ -271,8 +270,10 @@ def run_queue(
             return
         states = {}
         for slot, book in list(books.items()):
+            i = slots[slot]
+            assert i is not None
             try:
-                states[name_of[str(book.run)]] = book.state(trainer, slot)
+                states[names[i]] = book.state(trainer, slot)
             except NonFiniteError as exc:
                 fail(slot, str(exc))
         save_checkpoint(pop_ckpt, {**packing(), "members": states})
@@ -281,7 +282,7 @@ def run_queue(
 
     def begin(slot: int, i: int) -> None:
         run = dirs[i]
-        state = members.pop(name_of.get(str(run), ""), None)
+        state = members.pop(names[i], None)
         if state is None and (run / CHECKPOINT).exists():
             state = load_checkpoint(run)
         book = _Run(kind, cfgs[i], run, bar=progress and capacity == 1)
@@ -301,7 +302,7 @@ def run_queue(
         assert i is not None
         atomic_write_text(book.run / "error.txt", message + "\n")
         if pop_ckpt is not None and pop_ckpt.is_file():  # its last good state, in its folder
-            last = load_checkpoint(pop_ckpt.parent)["members"].get(name_of[str(book.run)])
+            last = load_checkpoint(pop_ckpt.parent)["members"].get(names[i])
             if last is not None:
                 save_checkpoint(book.run / CHECKPOINT, last)
         book.close()
