@@ -274,3 +274,30 @@ def test_merge_refuses_a_file_measured_with_other_settings(
     err = capsys.readouterr().err
     assert "was measured with --episodes 3 --seed 10000; got --episodes 2 --seed 10000" in err
     assert json.loads(out.read_text())["episodes"] == 3  # untouched
+
+
+def _tables(text: str) -> list[str]:
+    """The Markdown table rows of a text, their indentation stripped, in order."""
+    return [line.strip() for line in text.splitlines() if line.strip().startswith("|")]
+
+
+def test_committed_ablation_tables_are_the_committed_runs_and_the_readme_shows_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """benchmarks/results/ablation.md is what --summarize writes from the committed run
+    folders today, and the README's ablation table is its summary table: a run added or
+    a table edited by hand without the other fails here."""
+    md, runs = tmp_path / "ablation.md", ROOT / "benchmarks" / "results" / "ablation"
+    argv = ["ablation.py", "--summarize", "--out", str(runs), "--json", str(tmp_path / "a.json")]
+    monkeypatch.setattr(sys, "argv", [*argv, "--markdown", str(md)])
+    ablation.main()
+    capsys.readouterr()
+    recomputed = _tables(md.read_text())
+    committed = _tables((ROOT / "benchmarks" / "results" / "ablation.md").read_text())
+    assert recomputed == committed
+    per_task = "| variant | PPO | PPO-RB | PPO-RPE | P(> baseline) | P(> all) |"
+    summary = committed[: committed.index(per_task)]
+    assert len(summary) == 2 + len(ablation.variants_on_disk(runs))
+    readme = _tables((ROOT / "README.md").read_text())
+    start = readme.index(summary[0])
+    assert readme[start : start + len(summary)] == summary
