@@ -5,10 +5,13 @@ or all changes together (``AUTHOR_CHOICES``, pporpe 0.3's defaults), or all but 
 entropy density (``all_but_entropy``), or any combination of the changes named with ``+``
 (``amsgrad+td_units``: pporpe 0.2's choices with those two changes;
 ``td_units+amsgrad+layer_norm+trace_kl`` is ``V0_4_CHOICES``, pporpe's defaults since
-0.4); every variant runs
-the paper's comparison (PPO, PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the
-paper's 200 episodes with 10 seeds, through the grid machinery (populations, checkpoints,
-resume). It prints, per variant, task and method:
+0.4). Two more changes, ``weights`` and ``lr_width`` (:data:`TESTBED`), are the test bed's
+values where the paper states others; they combine like the rest, for diagnosis only
+(``td_units+amsgrad+layer_norm+trace_kl+weights``: the defaults with the test bed's
+regulariser weights and reward scale). Every variant runs the paper's comparison (PPO,
+PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the paper's 200 episodes with 10
+seeds, through the grid machinery (populations, checkpoints, resume). It prints, per
+variant, task and method:
 
 * the mean and the interquartile mean (IQM) of the per-seed score (median of the test
   episodes), each with a bootstrap 95% CI (scipy.stats.bootstrap, BCa, 10,000 resamples);
@@ -68,10 +71,23 @@ AUTHOR: dict[str, dict[str, Any]] = {
 }
 """Each difference, as the OnlineConfig fields that give the author's choice."""
 
+TESTBED: dict[str, dict[str, Any]] = {
+    "weights": {"beta_td": 0.025, "beta_de": 0.025, "reward_scale": 0.0095},
+    "lr_width": {"lr": 1e-4, "units": 128},
+}
+"""Where the author's test bed departs from a value the paper states (so never a default,
+the paper wins), for diagnosis only: "weights", its regulariser weight 0.1 and balance 0.5,
+which make 0.1 * 0.5 * 0.5 = 0.025 per term (the paper: beta_TD = beta_DE = 0.01) and a
+reward scale of (1 - gamma)(1 - 0.1 * 0.5) = 0.0095; "lr_width", its lr 1e-4 and 128 units
+a layer (the paper: 3e-4 and 100)."""
+
+CHANGES: dict[str, dict[str, Any]] = {**AUTHOR, **TESTBED}
+"""Every change a variant may combine, in the order of the tables and folder names."""
+
 
 def combined(names: Any) -> dict[str, Any]:
-    """pporpe 0.2's choices with the named changes of :data:`AUTHOR` on top."""
-    return {**V0_2_CHOICES, **{k: v for name in names for k, v in AUTHOR[name].items()}}
+    """pporpe 0.2's choices with the named changes of :data:`CHANGES` on top."""
+    return {**V0_2_CHOICES, **{k: v for name in names for k, v in CHANGES[name].items()}}
 
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -99,27 +115,27 @@ the 0.4 defaults themselves. The Markdown tables show the first two."""
 
 def variant_settings(name: str) -> dict[str, Any]:
     """A variant's learner settings: a name of :data:`VARIANTS`, or a combination of the
-    changes of :data:`AUTHOR` joined by ``+`` (``amsgrad+td_units``: pporpe 0.2's choices
+    changes of :data:`CHANGES` joined by ``+`` (``amsgrad+td_units``: pporpe 0.2's choices
     with those changes on top). Raises ValueError naming what is allowed."""
     if name in VARIANTS:
         return dict(VARIANTS[name])
     parts = name.split("+")
-    unknown = [p for p in parts if p not in AUTHOR]
+    unknown = [p for p in parts if p not in CHANGES]
     if len(parts) < 2 or unknown or len(set(parts)) != len(parts):
         raise ValueError(
             f"variant must be one of {sorted(VARIANTS)} or two or more distinct changes of "
-            f"{sorted(AUTHOR)} joined by '+'; got {name!r}"
+            f"{sorted(CHANGES)} joined by '+'; got {name!r}"
         )
     return combined(parts)
 
 
 def canonical(name: str) -> str:
-    """A combination's changes in :data:`AUTHOR`'s order (its folder name), so that
+    """A combination's changes in :data:`CHANGES`'s order (its folder name), so that
     ``trace_kl+amsgrad`` and ``amsgrad+trace_kl`` are one variant; other names unchanged."""
     variant_settings(name)
     if name in VARIANTS:
         return name
-    order = list(AUTHOR)
+    order = list(CHANGES)
     return "+".join(sorted(name.split("+"), key=order.index))
 
 
@@ -369,7 +385,8 @@ def main() -> None:
         default=list(VARIANTS),
         type=variant_arg,
         metavar="VARIANT",
-        help=f"{', '.join(VARIANTS)}, or changes joined by '+' (e.g. amsgrad+td_units)",
+        help=f"{', '.join(VARIANTS)}, or two or more of {', '.join(CHANGES)} joined by '+' "
+        "(e.g. amsgrad+td_units)",
     )
     parser.add_argument("--tasks", nargs="+", default=["pendulum", "swingup"])
     parser.add_argument("--seeds", type=int, default=10)
@@ -403,7 +420,7 @@ def main() -> None:
         for variant in args.variants:
             spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
             settings = variant_settings(variant)
-            changed = {k: v for k, v in settings.items() if V0_2_CHOICES[k] != v}
+            changed = {k: v for k, v in settings.items() if V0_2_CHOICES.get(k) != v}
             print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
             outcome = reproduce(spec, out / variant, workers=args.workers)
             print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "

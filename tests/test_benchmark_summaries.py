@@ -93,6 +93,27 @@ def test_a_combination_of_changes_is_the_baseline_with_those_changes() -> None:
             ablation.variant_settings(bad)
 
 
+def test_the_test_beds_weights_are_its_weight_and_balance_per_term() -> None:
+    """The test bed folds both regularisers into its TD error with one weight w = 0.1 and
+    a balance b = 0.5: reward (1 - gamma)(1 - w b) r, then + (1 - gamma) w b times
+    -(b delta_raw^2 + (1 - b) log pi). pporpe's signal is delta - (1 - gamma)(beta_TD
+    delta_raw^2 + beta_DE log pi), so beta_TD = w b b and beta_DE = w b (1 - b)."""
+    w, b, gamma = 0.1, 0.5, 0.99
+    weights = ablation.TESTBED["weights"]
+    assert weights["beta_td"] == pytest.approx(w * b * b)
+    assert weights["beta_de"] == pytest.approx(w * b * (1 - b))
+    assert weights["reward_scale"] == pytest.approx((1 - gamma) * (1 - w * b))
+    # a diagnostic change combines like the author's, after them in the folder name, and
+    # leaves "all" the author's six
+    name = ablation.canonical("weights+trace_kl+td_units+amsgrad+layer_norm")
+    assert name == "td_units+amsgrad+layer_norm+trace_kl+weights"
+    assert ablation.variant_settings(name) == {**pporpe.online.V0_4_CHOICES, **weights}
+    assert ablation.VARIANTS["all"] == dict(pporpe.online.AUTHOR_CHOICES)
+    assert "weights" not in ablation.VARIANTS and "lr_width" not in ablation.VARIANTS
+    config = pporpe.online.OnlineConfig(**ablation.variant_settings("amsgrad+lr_width"))
+    assert (config.lr, config.units, config.beta_td) == (1e-4, 128, 0.01)
+
+
 def test_a_combinations_runs_are_summarised_from_disk(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
