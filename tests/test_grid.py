@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import signal
@@ -352,6 +353,36 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(30))
         assert got == records_of(ref, run.key)
+
+
+def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_poll(
+    tmp_path: Path,
+) -> None:
+    """The grid's bar polls every two seconds. Into a log file it is drawn only when what
+    it shows changes (before, every poll drew it twice: a 30-minute grid logged 1,800
+    copies); on a terminal it is drawn at every poll, since its clock moves."""
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run in runs:
+        run.mkdir()
+    for file, polls_drawn in ((io.StringIO(), 1), (Terminal(), 5)):
+        bar = _Progress(2, 0, runs, enabled=True, file=file)
+        start = file.getvalue().count("\r")
+        for _ in range(5):
+            bar.poll(2, [])
+        assert file.getvalue().count("\r") - start == polls_drawn
+        assert "jobs=2" in file.getvalue()
+        (runs[0] / "done.json").write_text("{}")
+        before = file.getvalue().count("\r")
+        bar.poll(1, [])
+        bar.poll(1, [])
+        assert file.getvalue().count("\r") - before == (1 if polls_drawn == 1 else 2)
+        assert " 1/2 " in file.getvalue().rsplit("\r", 1)[-1]
+        bar.close()
 
 
 def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> None:

@@ -278,6 +278,7 @@ class _Progress:
         runs: list[Path],
         enabled: bool,
         budgets: list[int | None] | None = None,
+        file: Any = None,
     ) -> None:
         self.bar: Any = None
         self.initial, self.runs = done, runs
@@ -289,10 +290,19 @@ class _Progress:
         self.history: list[tuple[float, int]] = []
         self.t_counted = -math.inf
         self.episodes_text = ""
+        self.file = file if file is not None else sys.stderr
+        self.shown: tuple[Any, ...] | None = None
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, initial=done, unit="run", desc="grid", dynamic_ncols=True)
+            self.bar = tqdm(
+                total=total,
+                initial=done,
+                unit="run",
+                desc="grid",
+                dynamic_ncols=True,
+                file=self.file,
+            )
 
     def count_episodes(self) -> str:
         """``"N/M, left~T min"``: episodes on disk and the time left, the steps still to run
@@ -316,7 +326,10 @@ class _Progress:
 
     def poll(self, jobs_running: int, results: list[dict[str, Any]]) -> None:
         """Count finished runs on disk and failed ones in the jobs' results; show the jobs
-        still running and, every half minute, the episodes on disk."""
+        still running and, every half minute, the episodes on disk. On a terminal the bar is
+        redrawn at every poll (its clock moves); into a file or a pipe only when what it
+        shows changed, so that a log of a long grid holds a line per change, not one every
+        two seconds."""
         if self.bar is None:
             return
         done = sum((r / "done.json").exists() for r in self.runs)
@@ -328,8 +341,12 @@ class _Progress:
         postfix: dict[str, Any] = {"jobs": jobs_running, "failed": self.failed}
         if self.episodes_text:
             postfix["episodes"] = self.episodes_text
-        self.bar.set_postfix(postfix)
-        self.bar.refresh()
+        self.bar.set_postfix(postfix, refresh=False)
+        shown = (self.bar.n, *postfix.items())
+        isatty = getattr(self.file, "isatty", None)
+        if (isatty is not None and isatty()) or shown != self.shown:
+            self.bar.refresh()
+            self.shown = shown
 
     def close(self) -> None:
         if self.bar is not None:
