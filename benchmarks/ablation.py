@@ -58,7 +58,7 @@ from pporpe.experiments.stats import (
     probability_of_improvement_ci,
 )
 from pporpe.io import atomic_write_text
-from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES, V0_4_CHOICES
+from pporpe.online.config import AUTHOR_CHOICES, TESTBED_WEIGHTS, V0_2_CHOICES, V0_4_CHOICES
 from pporpe.runs.logger import read_records
 
 AUTHOR: dict[str, dict[str, Any]] = {
@@ -72,7 +72,7 @@ AUTHOR: dict[str, dict[str, Any]] = {
 """Each difference, as the OnlineConfig fields that give the author's choice."""
 
 TESTBED: dict[str, dict[str, Any]] = {
-    "weights": {"beta_td": 0.025, "beta_de": 0.025, "reward_scale": 0.0095},
+    "weights": dict(TESTBED_WEIGHTS),
     "lr_width": {"lr": 1e-4, "units": 128},
 }
 """Where the author's test bed departs from a value the paper states (so never a default,

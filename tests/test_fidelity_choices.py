@@ -12,10 +12,10 @@ import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
-from pporpe.advantages import regularized_advantage
+from pporpe.advantages import regularized_advantage, td_error
 from pporpe.nn.batched import forward_chain
 from pporpe.nn.policies import NormalHead, StudentTHead
-from pporpe.online.config import V0_2_CHOICES, OnlineConfig
+from pporpe.online.config import TESTBED_WEIGHTS, V0_2_CHOICES, OnlineConfig
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import surrogate_objective
 
@@ -59,6 +59,28 @@ def test_td_units_hand_worked() -> None:
     # 0.02 - 0.01 (0.01 * 0.02^2 + 0.01 * -1.2) and 0.02 - 0.01 (0.01 * 2^2 + 0.01 * -1.2)
     assert float(scaled) == pytest.approx(0.02011996, abs=1e-12)
     assert float(unscaled) == pytest.approx(0.01972, abs=1e-12)
+
+
+def test_testbed_weights_give_the_test_beds_regularised_td_error() -> None:
+    """The test bed's signal, written here in float64 from its description: one weight
+    w = 0.1 and balance b = 0.5; delta = (1 - g)(1 - w b) r + g V' - V, then
+    delta += (1 - g) w b (-(b (delta / (1 - g))^2 + (1 - b) log pi)). pporpe's
+    td_error and regularized_advantage with TESTBED_WEIGHTS and the unscaled TD units
+    give the same numbers."""
+    rng = np.random.default_rng(3)
+    r, v, v_next, logp = (rng.normal(size=64) for _ in range(4))
+    g, w, b = 0.99, 0.1, 0.5
+    raw = (1 - g) * (1 - w * b) * r + g * v_next - v
+    expected = raw + (1 - g) * w * b * (-(b * (raw / (1 - g)) ** 2 + (1 - b) * logp))
+    t = {k: torch.as_tensor(x, dtype=torch.float64) for k, x in zip("rvnl", (r, v, v_next, logp))}
+    config = OnlineConfig(**TESTBED_WEIGHTS)
+    discount = torch.tensor(g, dtype=torch.float64)
+    delta = td_error(t["r"] * config.effective_reward_scale, t["n"], t["v"], discount)
+    adv = regularized_advantage(
+        delta, t["l"], 1 - g, config.beta_td, config.beta_de, td_scale=1 / (1 - g)
+    )
+    np.testing.assert_allclose(adv.numpy(), expected, rtol=1e-12, atol=1e-15)
+    assert config.td_units == "unscaled"  # the defaults' units, which the formula needs
 
 
 def test_td_units_in_the_learner() -> None:

@@ -8,7 +8,14 @@ streams :mod:`.noise`); :class:`OnlineLearner` is one member with scalar inputs.
 ``"online"`` of the run loop is :mod:`.kind`.
 """
 
-from .config import AUTHOR_CHOICES, V0_2_CHOICES, V0_4_CHOICES, OnlineConfig, TrainConfig
+from .config import (
+    AUTHOR_CHOICES,
+    TESTBED_WEIGHTS,
+    V0_2_CHOICES,
+    V0_4_CHOICES,
+    OnlineConfig,
+    TrainConfig,
+)
 from .learner import OnlineLearner
 from .optim import TDAmsProp
 from .population import PopulationLearner
@@ -18,6 +25,7 @@ from .tsoft import TSoftUpdate
 
 __all__ = [
     "AUTHOR_CHOICES",
+    "TESTBED_WEIGHTS",
     "V0_2_CHOICES",
     "V0_4_CHOICES",
     "AdaptiveTraces",
