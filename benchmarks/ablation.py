@@ -6,9 +6,10 @@ entropy density (``all_but_entropy``), or any combination of the changes named w
 (``amsgrad+td_units``: pporpe 0.2's choices with those two changes;
 ``td_units+amsgrad+layer_norm+trace_kl`` is ``V0_4_CHOICES``, pporpe's defaults since
 0.4). Two more changes, ``weights`` and ``lr_width`` (:data:`TESTBED`), are the test bed's
-values where the paper states others; they combine like the rest, for diagnosis only
-(``td_units+amsgrad+layer_norm+trace_kl+weights``: the defaults with the test bed's
-regulariser weights and reward scale). Every variant runs the paper's comparison (PPO,
+values where the paper states others, for diagnosis only; they run in combinations, not
+alone (``td_units+amsgrad+layer_norm+trace_kl+weights``: the defaults with the test bed's
+regulariser weights and reward scale, the test bed's signal only with the unscaled TD
+units). Every variant runs the paper's comparison (PPO,
 PPO-RB, PPO-RPE) on InvertedPendulum and Swingup at the paper's 200 episodes with 10
 seeds, through the grid machinery (populations, checkpoints, resume). It prints, per
 variant, task and method:

@@ -83,6 +83,24 @@ def test_testbed_weights_give_the_test_beds_regularised_td_error() -> None:
     assert config.td_units == "unscaled"  # the defaults' units, which the formula needs
 
 
+def test_testbed_weights_in_the_learner() -> None:
+    """Two members with the same parameters and transition, the paper's weights and the
+    test bed's: the first step's delta differs by the reward scale alone, and A by the
+    weights, with log pi recovered from the first member's A (float64)."""
+    paper, testbed = cfg(td_units="unscaled"), cfg(td_units="unscaled", **TESTBED_WEIGHTS)
+    p = pop([paper, testbed], [0, 0])
+    u = torch.tensor([[0.3, -1.1]])
+    p.begin_episode([0, 1], np.zeros((2, OBS)), forced_u=u.repeat(2, 1))
+    no = np.zeros(2, dtype=bool)
+    reward = 0.7
+    s, _ = p.step(np.full(2, reward), np.ones((2, OBS)), no, no, forced_u=u.repeat(2, 1))
+    (d0, d1), (a0, a1), c = s.delta.double(), s.adv.double(), 0.01  # c = 1 - gamma
+    assert float(d1 - d0) == pytest.approx(reward * (0.0095 - 0.01), rel=1e-4)
+    log_pi = ((d0 - a0) / c - 0.01 * (d0 / c) ** 2) / 0.01
+    expected = d1 - c * (0.025 * (d1 / c) ** 2 + 0.025 * log_pi)
+    assert float(a1) == pytest.approx(float(expected), rel=1e-4, abs=1e-7)
+
+
 def test_td_units_in_the_learner() -> None:
     """At the first step both members have the same parameters and delta: A differs by
     exactly the TD penalty's units, (1 - gamma) beta_TD delta^2 (1/(1-gamma)^2 - 1)."""

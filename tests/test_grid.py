@@ -366,10 +366,10 @@ def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_po
         def isatty(self) -> bool:
             return True
 
-    runs = [tmp_path / "a", tmp_path / "b"]
-    for run in runs:
-        run.mkdir()
     for file, polls_drawn in ((io.StringIO(), 1), (Terminal(), 5)):
+        runs = [tmp_path / type(file).__name__ / name for name in ("a", "b")]
+        for run in runs:
+            run.mkdir(parents=True)
         bar = _Progress(2, 0, runs, enabled=True, file=file)
         start = file.getvalue().count("\r")
         for _ in range(5):
