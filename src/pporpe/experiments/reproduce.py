@@ -291,6 +291,9 @@ class _Progress:
         self.t_counted = -math.inf
         self.episodes_text = ""
         self.file = file if file is not None else sys.stderr
+        # On a terminal the bar's clock moves, so every poll redraws it; asked once.
+        isatty = getattr(self.file, "isatty", None)
+        self.redraw_every_poll = isatty is not None and bool(isatty())
         self.shown: tuple[Any, ...] | None = None
         if enabled:
             from tqdm import tqdm
@@ -343,8 +346,7 @@ class _Progress:
             postfix["episodes"] = self.episodes_text
         self.bar.set_postfix(postfix, refresh=False)
         shown = (self.bar.n, *postfix.items())
-        isatty = getattr(self.file, "isatty", None)
-        if (isatty is not None and isatty()) or shown != self.shown:
+        if self.redraw_every_poll or shown != self.shown:
             self.bar.refresh()
             self.shown = shown
 
