@@ -324,3 +324,64 @@ def test_committed_ablation_tables_are_the_committed_runs_and_the_readme_shows_t
     readme = _tables((ROOT / "README.md").read_text())
     start = readme.index(summary[0])
     assert readme[start : start + len(summary)] == summary
+
+
+def _testbed_modules() -> tuple[Any, Any]:
+    import testbed
+    import testbed_worker
+
+    return testbed, testbed_worker
+
+
+def test_testbed_paper_settings_are_what_the_test_beds_constructor_receives() -> None:
+    """pporpe's ``paper`` settings follow from the arguments the reference worker passes to
+    the test bed's AC: per-term weights w b^2 and w b (1 - b), reward (1 - gamma)(1 - w b)."""
+    testbed, worker = _testbed_modules()
+    ac = worker.CONFIGS["paper"]
+    ours = testbed.settings_for("paper")
+    w, b, gamma = ac["reg_weight"], ac["reg_balance"], ours["gamma"]
+    assert ours["beta_td"] == pytest.approx(w * b * b)
+    assert ours["beta_de"] == pytest.approx(w * b * (1 - b))
+    assert ours["beta_td"] == pytest.approx(0.01)  # the paper's Table I
+    assert ours["reward_scale"] == pytest.approx((1 - gamma) * (1 - w * b))
+    assert ours["lr"] == ac["opt_params"]["lr"]
+    assert [ours["units"]] * ours["layers"] == ac["fc_params"]["h_dims"]
+    assert ours["lambdas"] == (ac["lambda1"], ac["lambda2"])
+    assert ours["kappa"] == ac["div_weight"] and ours["eps"] == ac["ppo_threshold"]
+    tb = worker.CONFIGS["testbed"]
+    own = testbed.settings_for("testbed")
+    assert own["lambdas"] == (tb["lambda1"], tb["lambda2"]) and own["kappa"] == tb["div_weight"]
+
+
+def test_testbed_config_names_canonical_and_refused() -> None:
+    testbed, _ = _testbed_modules()
+    assert testbed.canonical_config("testbed+width+lr") == "testbed+lr+width"
+    s = testbed.settings_for("testbed+traces+clip")
+    assert (s["lambdas"], s["kappa"], s["policy_gradient"]) == ((0.5, 0.95), 10.0, "surrogate")
+    assert s["lr"] == 1e-4  # untouched groups keep the test bed's values
+    for bad in ("testbed+lr+lr", "paper+lr", "testbed+speed", "tb"):
+        with pytest.raises(ValueError, match="config must be"):
+            testbed.settings_for(bad)
+
+
+def test_testbed_summary_from_result_files(tmp_path: Path) -> None:
+    """Hand-made result files: the first-50 mean, the median score, P(pporpe > test bed)
+    and the episodes whose bands are apart."""
+    testbed, _ = _testbed_modules()
+    env = testbed.TASKS["pendulum"]
+    for impl, offset in (("pporpe", 0.0), ("testbed", 1000.0)):
+        for seed in (1, 2, 3):
+            returns = [offset + seed + e for e in range(60)]
+            path = testbed.result_path(impl, "testbed", "pendulum", seed, tmp_path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            data = {"env": env, "seed": seed, "config": "testbed", "returns": returns,
+                    "test_returns": [offset + seed, 0.0, offset + 2 * seed]}  # fmt: skip
+            path.write_text(json.dumps(data))
+    records = testbed.load_results(tmp_path)
+    assert len(records) == 6
+    first = testbed.select(records, implementation="pporpe", seed=2)[0]
+    assert first["first50_mean"] == pytest.approx(2 + 24.5) and first["score"] == 2.0
+    row = testbed.side_by_side(records, "pendulum", "testbed")
+    assert row["p_pporpe_better_score"]["value"] == 0.0  # the test bed ahead in every pair
+    assert row["bands"]["apart"] == list(range(1, 61))
+    assert testbed.side_by_side(records, "pendulum", "paper") is None

@@ -26,8 +26,11 @@ __all__ = [
     "AUTHOR_CHOICES",
     "CRITIC_SIGNALS",
     "ENTROPY_DENSITIES",
+    "POLICY_GRADIENTS",
     "TD_UNITS",
+    "TESTBED",
     "TESTBED_WEIGHTS",
+    "TIME_LIMITS",
     "TRACE_DIVERGENCES",
     "V0_2_CHOICES",
     "V0_4_CHOICES",
@@ -45,6 +48,10 @@ AmsgradMax = Literal["bias_corrected", "raw"]
 AMSGRAD_MAXES: tuple[str, ...] = get_args(AmsgradMax)
 TraceDivergence = Literal["sample", "analytic"]
 TRACE_DIVERGENCES: tuple[str, ...] = get_args(TraceDivergence)
+PolicyGradient = Literal["surrogate", "weighted_score"]
+POLICY_GRADIENTS: tuple[str, ...] = get_args(PolicyGradient)
+TimeLimit = Literal["bootstrap", "terminal"]
+TIME_LIMITS: tuple[str, ...] = get_args(TimeLimit)
 
 
 AUTHOR_CHOICES: Mapping[str, Any] = MappingProxyType(
@@ -99,6 +106,50 @@ b = 0.5, which make w*b*b = w*b*(1 - b) = 0.025 per term, and scales the reward 
 reward scale). They give the test bed's signal only with ``td_units="unscaled"``, the
 default. ``OnlineConfig(**TESTBED_WEIGHTS)`` is the defaults with them; the ablation
 measured that on both pendulum tasks (docs/online-learner.md)."""
+
+TESTBED: Mapping[str, Any] = MappingProxyType(
+    {
+        **AUTHOR_CHOICES,
+        **TESTBED_WEIGHTS,
+        "method": "ppo",
+        "eps": 0.1,
+        "gamma": 0.99,
+        "lr": 1e-4,
+        "layers": 5,
+        "units": 128,
+        "lambdas": (0.5, 0.9),
+        "kappa": 1.0,
+        "tau": 1.0,
+        "policy_gradient": "weighted_score",
+        "time_limit": "terminal",
+        "min_scale": 1e-8,
+    }
+)
+"""The learner of the author's public test bed (GitHub kbys-t/test_et, ``modules/ac.py``
+with the last entry of ``test.py``'s METHODS), field by field:
+``OnlineConfig(**TESTBED)`` is that learner. For comparison, never a default (the paper's
+Table I states other values); ``benchmarks/testbed.py`` runs both side by side.
+
+* :data:`AUTHOR_CHOICES`: where the paper is silent, the test bed's choices (critic
+  trained with the actor's signal, unscaled TD units, pre-squash entropy, raw AMSGrad
+  maximum decayed by 0.99999, LayerNorm without scale and shift, analytic trace KL);
+* :data:`TESTBED_WEIGHTS`: one regulariser weight 0.1 with balance 0.5, i.e. 0.025 per
+  term, and the reward scaled by (1 - gamma)(1 - 0.05);
+* ``method="ppo"``, ``eps=0.1``: its only surrogate is PPO's clip with threshold 0.1,
+  applied to the importance weight of the gradient (``policy_gradient="weighted_score"``);
+* ``gamma=0.99``: its default, the paper's too;
+* ``lr=1e-4``, ``layers=5``, ``units=128``: AC's defaults (the paper: 3e-4, 5 x 100);
+* ``lambdas=(0.5, 0.9)``, ``kappa=1``: test.py's last METHODS entry (lambda1 0.5,
+  lambda2 0.9, div_weight 1; the paper: 0.95 and 10);
+* ``tau=1``: it has no target network (its TD target is the online V), which the t-soft
+  update with rate 1 reproduces (the target equals the online network after every step);
+* ``time_limit="terminal"``: its TD target drops the bootstrap at every ``done``, the
+  time limit's included;
+* ``min_scale=1e-8``: its scale is softplus + 1e-8.
+
+The remaining differences (the policy head's three output layers with their own
+t-momentum statistics, the multivariate student-t of more than one action dimension,
+the seeding) are listed in docs/online-learner.md, *The author's test bed*."""
 
 
 @dataclass(frozen=True)
@@ -175,6 +226,18 @@ class OnlineConfig:
     test bed), KL(pi || pi_b) between the two policies at s_t (a normal-gamma
     approximation for the student-t) + (V - V_b)^2 / 2, or ``"sample"`` (pporpe 0.2),
     (rho - 1 - log rho) + (V - V_b)^2 at the sampled action."""
+    policy_gradient: PolicyGradient = "surrogate"
+    """How the surrogate enters the actor's gradient: the gradient of the surrogate
+    objective, -sigma grad obj(rho, sigma) per unit of A (``"surrogate"``, default, the
+    paper's eq.), or the score weighted by the surrogate's effective ratio,
+    -rho_dagger grad log pi with rho_dagger = sigma obj(rho, sigma) detached
+    (``"weighted_score"``, the author's test bed: for PPO, w = sigma min(sigma rho,
+    sigma clip(rho, 1 - eps, 1 + eps)), which where the clip is active weights the score
+    by 1 +- eps instead of zeroing it). The two agree wherever obj(rho, sigma) = sigma rho."""
+    time_limit: TimeLimit = "bootstrap"
+    """The TD target at a time limit (an episode truncated by the task): bootstrap from
+    V(s_{t+1}) as at any other step (``"bootstrap"``, default), or drop the bootstrap as at
+    a termination (``"terminal"``, the author's test bed, whose ``done`` includes it)."""
     reward_scale: float | None = None
     """Multiplier of rewards; ``None`` means 1 - gamma (the author's test bed)."""
     layers: int = 5
@@ -190,6 +253,9 @@ class OnlineConfig:
     """Hidden activation: ``"swish"`` (x*sigmoid(x)), ``"relu"`` or ``"tanh"``."""
     policy: PolicyKind = "student_t"
     """Policy distribution: diagonal ``"student_t"`` (paper) or ``"normal"``."""
+    min_scale: float = 1e-3
+    """Floor of the policy's scale, scale = softplus(raw) + min_scale, a finite number
+    > 0 (the author's test bed: 1e-8)."""
     compile: bool = True
     """Compile the elementwise update (traces, td-AmsProp, t-soft) with ``torch.compile``:
     about 2x faster per step on this project's 2-core CPU after a compile of a few seconds
@@ -245,6 +311,12 @@ class OnlineConfig:
             "None or a finite number > 0",
         )
         validate_network_fields(self)
+        require(
+            is_real(self.min_scale) and 0.0 < self.min_scale < math.inf,
+            "min_scale",
+            self.min_scale,
+            "a finite number > 0",
+        )
         require(isinstance(self.compile, bool), "compile", self.compile, "True or False")
         require(
             isinstance(self.layer_norm_affine, bool),
@@ -258,6 +330,8 @@ class OnlineConfig:
             ("critic_signal", CRITIC_SIGNALS),
             ("trace_divergence", TRACE_DIVERGENCES),
             ("amsgrad_max", AMSGRAD_MAXES),
+            ("policy_gradient", POLICY_GRADIENTS),
+            ("time_limit", TIME_LIMITS),
         ):
             value = getattr(self, name)
             require(value in allowed, name, value, f"one of {list(allowed)}")

@@ -24,7 +24,7 @@ from ..runs.kinds import Episode, Progress, register_kind
 from ..surrogates import regularization_amount
 from .config import V0_2_CHOICES, OnlineConfig, TrainConfig
 from .learner import OnlineLearner
-from .population import PopulationLearner
+from .population import SHARED_FIELDS, PopulationLearner
 from .stats import StepStats
 
 __all__ = ["ONLINE", "OnlineKind", "OnlineTrainer", "episode_diagnostics"]
@@ -300,7 +300,7 @@ class OnlineKind:
     def pack_key(self, cfg: TrainConfig) -> Any:
         """The task and the network shape: what members of one population share."""
         lc = cfg.learner
-        return (cfg.env, lc.layers, lc.units, lc.layer_norm, lc.activation, lc.policy, lc.compile)
+        return (cfg.env, *(getattr(lc, name) for name in SHARED_FIELDS), lc.compile)
 
     def load_policy(self, cfg: TrainConfig, state: dict[str, Any]) -> Policy:
         """The trained policy of a checkpoint (also of pporpe 0.1.0's)."""

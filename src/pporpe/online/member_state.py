@@ -105,6 +105,8 @@ def write_constants(pop: PopulationLearner, k: int, cfg: OnlineConfig) -> None:
     b["pre_squash"][k] = cfg.entropy_density == "pre_squash"
     b["critic_actor"][k] = cfg.critic_signal == "actor"
     b["kl_analytic"][k] = cfg.trace_divergence == "analytic"
+    b["weighted_score"][k] = cfg.policy_gradient == "weighted_score"
+    b["limit_terminal"][k] = cfg.time_limit == "terminal"
     b["ln_frozen"][k] = pop.lay.layer_norm and not cfg.layer_norm_affine
     pop._norm_keep[k] = 1.0
     if b["ln_frozen"][k]:

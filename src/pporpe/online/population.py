@@ -64,8 +64,10 @@ from .update import (
 
 __all__ = ["SHARED_FIELDS", "PopulationLearner", "StepStats"]
 
-SHARED_FIELDS: tuple[str, ...] = ("layers", "units", "layer_norm", "activation", "policy")
-"""Config fields every member must share (they fix the network shape)."""
+SHARED_FIELDS: tuple[str, ...] = (
+    "layers", "units", "layer_norm", "activation", "policy", "min_scale",
+)  # fmt: skip
+"""Config fields every member must share (they fix the network shape and its head)."""
 
 SIGMA2_INIT = 1e-2
 """t-soft ``sigma2`` initial value: TSoftUpdate's default."""
@@ -123,7 +125,7 @@ class PopulationLearner:
         )
         self.act_dim = self.action_map.act_dim
         c0 = configs[0]
-        self.head: PolicyHead = make_head(c0.policy, self.act_dim)
+        self.head: PolicyHead = make_head(c0.policy, self.act_dim, min_scale=c0.min_scale)
         self.activation = c0.activation
         self.lay = lay = NetLayout(obs_dim, self.head.raw_dim, c0.layers, c0.units, c0.layer_norm)
         R, U, S = lay.n_rows, lay.units, lay.n_seg
@@ -162,7 +164,10 @@ class PopulationLearner:
             ]
         }
         self._c64 = {n: torch.zeros(K, dtype=torch.float64) for n in ("tau", "nu", "sigma2_min")}
-        flags = ("kappa_pos", "mom_only", "polyak", "pre_squash", "critic_actor", "kl_analytic")
+        flags = (
+            "kappa_pos", "mom_only", "polyak", "pre_squash", "critic_actor", "kl_analytic",
+            "weighted_score", "limit_terminal",
+        )  # fmt: skip
         self._b = {n: torch.zeros(K, dtype=torch.bool) for n in (*flags, "ln_frozen")}
         self._np = {n: np.zeros(K) for n in ("beta1", "beta2", "lr", "ams_decay", "ams_raw")}
         self._norm_keep = torch.ones(K, lay.n_rows)  # 0 on frozen LayerNorm rows
@@ -364,9 +369,13 @@ class PopulationLearner:
         return self.action_map.to_action(u).numpy()
 
     # -- learning -------------------------------------------------------------------------
-    def _head_grad(self, raw0: Tensor, ratio: Tensor, sigma: Tensor) -> tuple[Tensor, Tensor]:
+    def _head_grad(
+        self, raw0: Tensor, logp: Tensor, ratio: Tensor, sigma: Tensor
+    ) -> tuple[Tensor, Tensor]:
         """``d/d raw0 sum_k -sigma_k obj_k(rho_k, sigma_k)`` and the surrogates' effective
-        ratios rho_dagger = sigma obj(rho, sigma) (detached).
+        ratios rho_dagger = sigma obj(rho, sigma) (detached); for members with
+        ``policy_gradient="weighted_score"`` the first term is
+        ``-rho_dagger log pi`` instead (rho_dagger detached).
 
         Each distinct surrogate setting is evaluated on all K members and selected by
         mask, so a member's numbers never depend on which settings the other slots hold.
@@ -379,8 +388,10 @@ class PopulationLearner:
             for (method, eps, beta, eta, form), mask in self._groups:
                 value = surrogate_objective(method, ratio, sigma, eps, beta, eta, form)
                 obj = torch.where(mask, value, obj)
-        (grad,) = torch.autograd.grad((-sigma * obj).sum(), raw0)
-        return grad, (sigma * obj).detach()
+        rho_dagger = (sigma * obj).detach()
+        loss = torch.where(self._b["weighted_score"], -rho_dagger * logp, -sigma * obj)
+        (grad,) = torch.autograd.grad(loss.sum(), raw0)
+        return grad, rho_dagger
 
     def step(
         self,
@@ -405,7 +416,8 @@ class PopulationLearner:
             missing = np.nonzero(act_np & ~self._pending)[0].tolist()
             raise RuntimeError(f"call begin_episode for members {missing} before step()")
         term_np = np.asarray(terminated, dtype=bool).reshape(K)
-        done_np = term_np | np.asarray(truncated, dtype=bool).reshape(K)
+        trunc_np = np.asarray(truncated, dtype=bool).reshape(K)
+        done_np = term_np | trunc_np
         act = torch.from_numpy(act_np.copy())
         c = self._c
         rew = torch.as_tensor(np.asarray(reward, np.float32)).reshape(K)
@@ -415,7 +427,11 @@ class PopulationLearner:
         assert cache is not None
         raw, values, next_target = out[:K], out[K : 2 * K, :, 0], out[2 * K :, 1, 0]
         v = values[:, 0]
-        bootstrap = torch.where(torch.from_numpy(term_np.copy()), 0.0, c["gamma"])
+        # no bootstrap past a termination, nor past a time limit for "terminal" members
+        ends = torch.from_numpy(term_np.copy()) | (
+            torch.from_numpy(trunc_np.copy()) & self._b["limit_terminal"]
+        )
+        bootstrap = torch.where(ends, 0.0, c["gamma"])
         delta = td_error(rew * c["reward_scale"], next_target, v, bootstrap)
         raw0 = raw[:, 0].detach().requires_grad_(True)
         with torch.enable_grad():
@@ -430,7 +446,7 @@ class PopulationLearner:
                 delta, logp_entropy, c["one_m_gamma"], c["beta_td"], c["beta_de"], c["td_scale"]
             )
             sigma = torch.where(adv >= 0, 1.0, -1.0)
-            d_raw, rho_dagger = self._head_grad(raw0, ratio_g, sigma)
+            d_raw, rho_dagger = self._head_grad(raw0, logp, ratio_g, sigma)
         log_ratio, ratio = log_ratio_g.detach(), ratio_g.detach()
         divergence = (ratio - 1.0 - log_ratio) + (v - self._value_b) ** 2
         if self._b["kl_analytic"].any():
