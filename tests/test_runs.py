@@ -514,3 +514,21 @@ def test_a_chunk_or_a_cell_of_a_grid_is_selected_by_task_method_and_seed() -> No
         select_runs(spec, tasks=["pendulum", "ant"])
     with pytest.raises(ValueError, match=r"--seeds 7: not in the spec"):
         select_runs(spec, seeds=[7])
+
+
+def test_train_restores_the_callers_torch_threads(tmp_path: Path) -> None:
+    """Training runs on one thread (the setting of same seed, same numbers) and gives the
+    caller's setting back; a bad thread count is refused before any work."""
+    cfg = TrainConfig(episodes=1, eval_episodes=0, learner=OnlineConfig(layers=1, units=4))
+    before = torch.get_num_threads()
+    seen: list[int] = []
+    try:
+        torch.set_num_threads(2)
+        train(cfg, tmp_path / "a", progress=False,
+              on_episode=lambda _: seen.append(torch.get_num_threads()))  # fmt: skip
+        assert seen == [1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="num_threads"):
+        train(cfg, tmp_path / "b", progress=False, num_threads=0)
+    assert not (tmp_path / "b").exists()

@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,10 +48,9 @@ from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
 from .logger import EpisodeRecord, RunLogger, read_records
+from .population_checkpoint import Packing, PopulationCheckpoint
 
 __all__ = ["NonFiniteError", "RunResult", "load_policy", "run_queue", "train"]
-
-POPULATION_FILE = "population.json"
 
 
 @dataclass
@@ -177,6 +176,242 @@ class _Run:
         self.logger.close()
 
 
+@dataclass
+class _Hooks:
+    """What the caller asked the queue for, besides the runs."""
+
+    progress: bool = False
+    on_episode: Callable[[EpisodeRecord], None] | None = None
+    on_chunk: OnChunk | None = None
+    checkpoint_seconds: float = 0.0
+
+
+class _Queue:
+    """The runs of one :func:`run_queue` call in the slots of one trainer.
+
+    One method per event: :meth:`begin` (a run enters a slot), :meth:`fill` (a slot takes
+    the next queued run), :meth:`checkpoint` (every busy run), :meth:`finish` (a run's
+    budget is spent), :meth:`fail` (a run failed alone), :meth:`compact` (the trainer
+    shrinks to its busy runs). :meth:`run` is the loop over them.
+    """
+
+    def __init__(
+        self,
+        kind: LearnerKind,
+        cfgs: list[Any],
+        dirs: list[Path],
+        pending: list[int],
+        capacity: int,
+        population: PopulationCheckpoint | None,
+        hooks: _Hooks,
+        results: dict[int, RunResult],
+    ) -> None:
+        self.kind, self.cfgs, self.dirs, self.hooks = kind, cfgs, dirs, hooks
+        self.population, self.results = population, results
+        self.packing = Packing([None] * capacity, deque(pending))
+        self.members: dict[str, dict[str, Any]] = {}
+        if population is not None and (saved := population.restore(pending)) is not None:
+            self.packing, self.members = saved
+        self.names = population.names if population is not None else [str(d) for d in dirs]
+        self.trainer = kind.make_trainer(cfgs[pending[0]], len(self.packing.slots))
+        self.books: dict[int, _Run] = {}
+        self.last_checkpoint = time.perf_counter()
+
+    @property
+    def slots(self) -> list[int | None]:
+        return self.packing.slots
+
+    def write_packing(self) -> None:
+        if self.population is not None:
+            self.population.write_mirror(self.packing)
+
+    def begin(self, slot: int, i: int) -> None:
+        """Start run ``i`` in ``slot``: fresh, or from its state (the population's or its own)."""
+        run = self.dirs[i]
+        state = self.members.pop(self.names[i], None)
+        if state is None and (run / CHECKPOINT).exists():
+            state = load_checkpoint(run)
+        bar = self.hooks.progress and len(self.slots) == 1
+        book = _Run(self.kind, self.cfgs[i], run, bar=bar)
+        self.trainer.start(slot, self.cfgs[i], state)
+        book.resume(state, self.trainer, slot)
+        (run / "error.txt").unlink(missing_ok=True)
+        self.books[slot] = book
+        self.slots[slot] = i
+
+    def fill(self, slot: int) -> None:
+        """``slot`` takes the next queued run, or stays idle."""
+        self.slots[slot] = None
+        if self.packing.queue:
+            self.begin(slot, self.packing.queue.popleft())
+
+    def checkpoint(self) -> None:
+        """Every busy run's checkpoint: in its folder (one run), or all of them in the
+        population's one file (so that they are always from the same step)."""
+        if self.population is None:
+            for slot, book in list(self.books.items()):
+                try:
+                    book.checkpoint(self.trainer, slot)
+                except NonFiniteError as exc:
+                    self.fail(slot, str(exc))
+            return
+        states = {}
+        for slot, book in list(self.books.items()):
+            i = self.slots[slot]
+            assert i is not None
+            try:
+                states[self.names[i]] = book.state(self.trainer, slot)
+            except NonFiniteError as exc:
+                self.fail(slot, str(exc))
+        self.population.save(self.packing, states)
+        for book in self.books.values():
+            book.logger.write_records(book.records)
+
+    def fail(self, slot: int, message: str) -> None:
+        """Run of ``slot`` failed alone: its message and last good state in its folder."""
+        i, book = self.slots[slot], self.books.pop(slot)
+        assert i is not None
+        atomic_write_text(book.run / "error.txt", message + "\n")
+        if self.population is not None and (last := self.population.last_state(i)) is not None:
+            save_checkpoint(book.run / CHECKPOINT, last)
+        book.close()
+        self.results[i] = RunResult(
+            book.run, book.records, None, book.resumed_from, error=message, chunks=0
+        )
+        self.trainer.stop(slot)
+        self.fill(slot)
+
+    def finish(self, slot: int) -> None:
+        """Evaluate and complete the run in ``slot`` (its last checkpoint is written)."""
+        try:
+            self.books[slot].checkpoint(self.trainer, slot)
+        except NonFiniteError as exc:
+            self.fail(slot, str(exc))
+            return
+        i, book = self.slots[slot], self.books.pop(slot)
+        assert i is not None
+        cfg = self.cfgs[i]
+        total_time = book.train_time()
+        counters = self.trainer.counters(slot)
+        act = self.trainer.policy(slot)
+        self.trainer.stop(slot)
+        book.close()
+        evaluation = None
+        if cfg.eval_episodes > 0:
+            evaluation = evaluate_policy(
+                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
+            )
+            atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
+        done = {"episodes": len(book.records), **counters, "train_time": total_time}
+        atomic_write_json(book.run / "done.json", done)
+        self.results[i] = RunResult(
+            book.run, book.records, evaluation, book.resumed_from, counters["total_steps"],
+            total_time, counters["chunks"], book.last,
+        )  # fmt: skip
+        self.fill(slot)
+
+    def compact(self) -> bool:
+        """With the queue empty and at most half the slots busy, move the busy runs to a
+        smaller trainer (idle slots of a population would still cost compute)."""
+        busy = [slot for slot, i in enumerate(self.slots) if i is not None]
+        if len(self.slots) <= 1 or self.packing.queue or not busy:
+            return False
+        if len(busy) > len(self.slots) // 2:
+            return False
+        self.trainer.compact(busy)
+        moved = {j: self.books[slot] for j, slot in enumerate(busy)}
+        self.books.clear()
+        self.books.update(moved)
+        self.slots[:] = [self.slots[slot] for slot in busy]
+        return True
+
+    def report(self, reports: dict[int, Progress]) -> bool:
+        """Log every run's new episodes and call the hooks; True when a checkpoint is due."""
+        due = False
+        for slot, progress in reports.items():
+            book = self.books[slot]
+            new = book.add(progress)
+            t_cb = time.perf_counter()
+            if self.hooks.on_episode is not None:
+                for rec in new:
+                    self.hooks.on_episode(rec)
+            if self.hooks.on_chunk is not None:
+                self.hooks.on_chunk(self.trainer, progress, book.train_time())
+            book.excluded += time.perf_counter() - t_cb
+            due = due or progress.checkpoint_due
+        return due
+
+    def settle(self, reports: dict[int, Progress]) -> bool:
+        """Fail or finish the runs that reported an error or spent their budget, then
+        compact; True when the packing changed."""
+        changed = False
+        for slot, progress in reports.items():
+            if progress.error is not None:
+                self.fail(slot, progress.error)
+                changed = True
+            elif self.trainer.finished(slot):
+                self.finish(slot)
+                changed = True
+        return self.compact() or changed
+
+    def step(self) -> None:
+        """One unit of work of every busy run, then its bookkeeping."""
+        # a run resumed with its budget spent (stopped after its last checkpoint, e.g.
+        # during evaluation) is completed without another unit of work
+        spent = [slot for slot in self.books if self.trainer.finished(slot)]
+        if spent:
+            for slot in spent:
+                self.finish(slot)
+            self.write_packing()
+            return
+        reports = self.trainer.advance()
+        due = self.report(reports)
+        changed = self.settle(reports)
+        if changed and self.population is not None and self.books:
+            # the packing changed (a run ended, its slot was refilled, the trainer shrank):
+            # checkpoint every run at this step, so that a resumed queue continues with
+            # the same packing at the same step, bit for bit
+            due, self.last_checkpoint = True, -math.inf
+        elapsed = time.perf_counter() - self.last_checkpoint
+        if due and elapsed >= self.hooks.checkpoint_seconds:
+            self.checkpoint()
+            self.last_checkpoint = time.perf_counter()
+            changed = True
+        if changed:
+            self.write_packing()
+
+    def run(self) -> None:
+        """Fill the slots, then step until every run has finished or failed."""
+        try:
+            for slot, assigned in enumerate(list(self.slots)):
+                if assigned is not None:
+                    self.begin(slot, assigned)
+                else:
+                    self.fill(slot)
+            self.write_packing()
+            while self.books:
+                self.step()
+        finally:
+            for book in self.books.values():
+                book.close()
+            self.trainer.close()
+
+
+def _pending_runs(
+    kind: LearnerKind, cfgs: list[Any], dirs: list[Path], results: dict[int, RunResult]
+) -> list[int]:
+    """Open every run folder (``config.json`` written or checked); finished runs go to
+    ``results``, the others are returned."""
+    pending: list[int] = []
+    for i, (cfg, run) in enumerate(zip(cfgs, dirs, strict=True)):
+        _, done = open_run_dir(run, config_json(kind, cfg))
+        if done:
+            results[i] = _finished_result(run)
+        else:
+            pending.append(i)
+    return pending
+
+
 def run_queue(
     runs: Sequence[tuple[Any, str | Path]],
     capacity: int = 1,
@@ -185,17 +420,24 @@ def run_queue(
     on_episode: Callable[[EpisodeRecord], None] | None = None,
     on_chunk: OnChunk | None = None,
     checkpoint_seconds: float = 0.0,
+    num_threads: int = 1,
 ) -> list[RunResult]:
     """Train every ``(config, run_dir)`` of ``runs`` (one learner kind, one task and network
     shape) through one trainer with up to ``capacity`` slots, refilling a slot when its run
     finishes. Returns one result per run, in order.
 
-    ``home`` (required when ``capacity`` > 1) holds ``population.json``. A due checkpoint
-    is written at most every ``checkpoint_seconds`` (0: whenever due); every run also gets
-    one when it finishes. ``on_episode`` is called after every episode, ``on_chunk`` after
-    every unit of work of a run. Exceptions other than a run's own failure stop the queue
-    (each run keeps its last checkpoint).
+    ``home`` (required when ``capacity`` > 1) holds the population's checkpoint and
+    ``population.json``. A due checkpoint is written at most every ``checkpoint_seconds``
+    (0: whenever due); every run also gets one when it finishes. ``on_episode`` is called
+    after every episode, ``on_chunk`` after every unit of work of a run. ``num_threads``:
+    torch's intra-op threads while training (1: the setting under which the same seed gives
+    the same numbers), the caller's setting restored when the call returns. (One setting
+    for every call: a kernel compiled by ``torch.compile`` under one thread count crashed
+    when run under another.) Exceptions other than a run's own failure stop the queue (each
+    run keeps its last checkpoint).
     """
+    if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
+        raise ValueError(f"num_threads must be an int >= 1; got num_threads={num_threads!r}")
     if not runs:
         return []
     if capacity > 1 and home is None:
@@ -210,207 +452,28 @@ def run_queue(
         make_env(env).close()
     dirs = [Path(d) for _, d in runs]
     results: dict[int, RunResult] = {}
-    pending: list[int] = []
-    for i, (cfg, run) in enumerate(zip(cfgs, dirs, strict=True)):
-        _, done = open_run_dir(run, config_json(kind, cfg))
-        if done:
-            results[i] = _finished_result(run)
-        else:
-            pending.append(i)
-    if not pending:
-        return [results[i] for i in range(len(runs))]
-    pop_file = Path(home) / POPULATION_FILE if home is not None and capacity > 1 else None
-    capacity = max(1, min(capacity, len(pending)))
-
-    torch.set_num_threads(1)
-    queue: deque[int] = deque(pending)
-    slots: list[int | None] = [None] * capacity
-    # a population's checkpoint: every member at one step, with the packing, in one file
-    pop_ckpt = pop_file.with_name(CHECKPOINT) if pop_file is not None else None
-    members: dict[str, dict[str, Any]] = {}
-    # The packing names run folders relative to the home folder, so that an output folder
-    # moved or copied elsewhere (another checkout, another machine) resumes from its
-    # population checkpoint; pporpe 0.4.0 and earlier named them by their full paths.
-    names = [os.path.relpath(d, home) if home is not None else str(d) for d in dirs]
-    if pop_ckpt is not None and pop_ckpt.is_file():
-        saved = load_checkpoint(pop_ckpt.parent)
-        spelling = next(  # the same job (the same runs), in either spelling
-            (s for s in (names, [str(d) for d in dirs]) if saved.get("runs") == s), None
+    pending = _pending_runs(kind, cfgs, dirs, results)
+    if pending:
+        population = (
+            PopulationCheckpoint(Path(home), dirs) if home is not None and capacity > 1 else None
         )
-        if spelling is not None:
-            by_dir = {name: i for i, name in enumerate(spelling)}
-            slots = [by_dir.get(d) if d else None for d in saved["slots"]]
-            slots = [i if i in pending else None for i in slots]
-            queue = deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending)
-            capacity = len(slots)
-            members = {names[by_dir[k]]: v for k, v in saved["members"].items() if k in by_dir}
-    trainer = kind.make_trainer(cfgs[pending[0]], capacity)
-    books: dict[int, _Run] = {}
-
-    def packing() -> dict[str, Any]:
-        return {
-            "runs": names,
-            "slots": [names[i] if i is not None else None for i in slots],
-            "queue": [names[i] for i in queue],
-        }
-
-    def write_population() -> None:
-        if pop_file is not None:
-            atomic_write_json(pop_file, packing())  # a readable mirror of the packing
-
-    def checkpoint_all() -> None:
-        """Every busy run's checkpoint: in its folder (one run), or all of them in the
-        population's one file (so that they are always from the same step)."""
-        if pop_ckpt is None:
-            for slot, book in list(books.items()):
-                try:
-                    book.checkpoint(trainer, slot)
-                except NonFiniteError as exc:
-                    fail(slot, str(exc))
-            return
-        states = {}
-        for slot, book in list(books.items()):
-            i = slots[slot]
-            assert i is not None
-            try:
-                states[names[i]] = book.state(trainer, slot)
-            except NonFiniteError as exc:
-                fail(slot, str(exc))
-        save_checkpoint(pop_ckpt, {**packing(), "members": states})
-        for book in books.values():
-            book.logger.write_records(book.records)
-
-    def begin(slot: int, i: int) -> None:
-        run = dirs[i]
-        state = members.pop(names[i], None)
-        if state is None and (run / CHECKPOINT).exists():
-            state = load_checkpoint(run)
-        book = _Run(kind, cfgs[i], run, bar=progress and capacity == 1)
-        trainer.start(slot, cfgs[i], state)
-        book.resume(state, trainer, slot)
-        (run / "error.txt").unlink(missing_ok=True)
-        books[slot] = book
-        slots[slot] = i
-
-    def fill(slot: int) -> None:
-        slots[slot] = None
-        if queue:
-            begin(slot, queue.popleft())
-
-    def fail(slot: int, message: str) -> None:
-        i, book = slots[slot], books.pop(slot)
-        assert i is not None
-        atomic_write_text(book.run / "error.txt", message + "\n")
-        if pop_ckpt is not None and pop_ckpt.is_file():  # its last good state, in its folder
-            last = load_checkpoint(pop_ckpt.parent)["members"].get(names[i])
-            if last is not None:
-                save_checkpoint(book.run / CHECKPOINT, last)
-        book.close()
-        results[i] = RunResult(
-            book.run, book.records, None, book.resumed_from, error=message, chunks=0
-        )
-        trainer.stop(slot)
-        fill(slot)
-
-    def finish(slot: int) -> None:
-        """Evaluate and complete the run in ``slot`` (its last checkpoint is written)."""
-        try:
-            books[slot].checkpoint(trainer, slot)
-        except NonFiniteError as exc:
-            fail(slot, str(exc))
-            return
-        i, book = slots[slot], books.pop(slot)
-        assert i is not None
-        cfg = cfgs[i]
-        total_time = book.train_time()
-        counters = trainer.counters(slot)
-        act = trainer.policy(slot)
-        trainer.stop(slot)
-        book.close()
-        evaluation = None
-        if cfg.eval_episodes > 0:
-            evaluation = evaluate_policy(
-                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
-            )
-            atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
-        done = {"episodes": len(book.records), **counters, "train_time": total_time}
-        atomic_write_json(book.run / "done.json", done)
-        results[i] = RunResult(
-            book.run,
-            book.records,
-            evaluation,
-            book.resumed_from,
-            counters["total_steps"],
-            total_time,
-            counters["chunks"],
-            book.last,
-        )
-        fill(slot)
-
-    last_checkpoint = time.perf_counter()
-    try:
-        for slot in range(capacity):
-            assigned = slots[slot]
-            if assigned is not None:
-                begin(slot, assigned)
-            else:
-                fill(slot)
-        write_population()
-        while books:
-            # a run resumed with its budget spent (stopped after its last checkpoint, e.g.
-            # during evaluation) is completed without another unit of work
-            spent = [slot for slot in books if trainer.finished(slot)]
-            if spent:
-                for slot in spent:
-                    finish(slot)
-                write_population()
-                continue
-            reports = trainer.advance()
-            due = False
-            for slot, report in reports.items():
-                book = books[slot]
-                new = book.add(report)
-                t_cb = time.perf_counter()
-                if on_episode is not None:
-                    for rec in new:
-                        on_episode(rec)
-                if on_chunk is not None:
-                    on_chunk(trainer, report, book.train_time())
-                book.excluded += time.perf_counter() - t_cb
-                due = due or report.checkpoint_due
-            changed = False
-            for slot, report in reports.items():
-                if report.error is not None:
-                    fail(slot, report.error)
-                    changed = True
-                elif trainer.finished(slot):
-                    finish(slot)
-                    changed = True
-            busy = [slot for slot, i in enumerate(slots) if i is not None]
-            if len(slots) > 1 and not queue and busy and len(busy) <= len(slots) // 2:
-                # the idle slots would still cost compute: move the runs to a smaller trainer
-                trainer.compact(busy)
-                moved = {j: books[slot] for j, slot in enumerate(busy)}
-                books.clear()
-                books.update(moved)
-                slots[:] = [slots[slot] for slot in busy]
-                changed = True
-            if changed and pop_file is not None and books:
-                # the packing changed (a run ended, its slot was refilled, the trainer shrank):
-                # checkpoint every run at this step, so that a resumed queue continues with
-                # the same packing at the same step, bit for bit
-                due, last_checkpoint = True, -math.inf
-            if due and time.perf_counter() - last_checkpoint >= checkpoint_seconds:
-                checkpoint_all()
-                last_checkpoint = time.perf_counter()
-                changed = True
-            if changed:
-                write_population()
-    finally:
-        for book in books.values():
-            book.close()
-        trainer.close()
+        hooks = _Hooks(progress, on_episode, on_chunk, checkpoint_seconds)
+        slots = max(1, min(capacity, len(pending)))
+        with _torch_threads(num_threads):
+            queue = _Queue(kind, cfgs, dirs, pending, slots, population, hooks, results)
+            queue.run()
     return [results[i] for i in range(len(runs))]
+
+
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads set to ``n`` inside, the caller's setting restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def train(
@@ -419,15 +482,22 @@ def train(
     progress: bool = True,
     on_episode: Callable[[EpisodeRecord], None] | None = None,
     on_chunk: OnChunk | None = None,
+    num_threads: int = 1,
 ) -> RunResult:
     """Train one run of any learner kind as configured, writing everything into
     ``run_dir``; resumes from its checkpoint when one exists for the same config.
+    ``num_threads``: torch's threads while training, the caller's setting restored after
+    (see :func:`run_queue`).
 
     Raises :class:`NonFiniteError` if the run failed on a non-finite value (its last good
     checkpoint is kept).
     """
     (result,) = run_queue(
-        [(cfg, run_dir)], progress=progress, on_episode=on_episode, on_chunk=on_chunk
+        [(cfg, run_dir)],
+        progress=progress,
+        on_episode=on_episode,
+        on_chunk=on_chunk,
+        num_threads=num_threads,
     )
     if result.error is not None:
         raise NonFiniteError(result.error)

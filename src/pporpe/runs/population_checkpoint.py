@@ -1,0 +1,91 @@
+"""The checkpoint of a queue of runs trained together: every member at one step, and the packing.
+
+A population's members are checkpointed together, in one atomic file in the queue's home
+folder, so that they are always from the same step; with them goes the *packing* (which
+run is in which slot, which runs are still queued). ``population.json`` beside it is a
+readable copy of the packing. Run folders are named relative to the home folder, so an
+output folder moved or copied elsewhere resumes from its checkpoint; checkpoints of pporpe
+0.4.0 and earlier named them by their full paths, and are still read.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..io import atomic_write_json
+from .folder import CHECKPOINT, load_checkpoint, save_checkpoint
+
+__all__ = ["POPULATION_FILE", "Packing", "PopulationCheckpoint"]
+
+POPULATION_FILE = "population.json"
+"""The readable copy of the packing, in the home folder."""
+
+
+@dataclass
+class Packing:
+    """Which run (an index into the queue's runs) is in which slot, and which are queued."""
+
+    slots: list[int | None]
+    """The run in each slot of the trainer, or None for an idle slot."""
+    queue: deque[int] = field(default_factory=deque)
+    """The runs still to start, in order."""
+
+    def as_dict(self, names: list[str]) -> dict[str, Any]:
+        """The packing with runs by name (``runs``, ``slots``, ``queue``)."""
+        return {
+            "runs": names,
+            "slots": [names[i] if i is not None else None for i in self.slots],
+            "queue": [names[i] for i in self.queue],
+        }
+
+
+class PopulationCheckpoint:
+    """The population checkpoint of a queue of runs ``dirs`` whose home is ``home``."""
+
+    def __init__(self, home: Path, dirs: list[Path]) -> None:
+        self.file = home / CHECKPOINT
+        self.mirror = home / POPULATION_FILE
+        self.names = [os.path.relpath(d, home) for d in dirs]
+        """The runs by name: their folders relative to the home folder."""
+        self._full_paths = [str(d) for d in dirs]
+
+    def restore(self, pending: list[int]) -> tuple[Packing, dict[str, dict[str, Any]]] | None:
+        """The saved packing (restricted to the ``pending`` runs) and the members' states
+        by run name, if the home holds a checkpoint of this queue's runs; else None."""
+        if not self.file.is_file():
+            return None
+        saved = load_checkpoint(self.file.parent)
+        spelling = next(  # the same job (the same runs), in either spelling
+            (s for s in (self.names, self._full_paths) if saved.get("runs") == s), None
+        )
+        if spelling is None:
+            return None
+        by_dir = {name: i for i, name in enumerate(spelling)}
+        slots = [by_dir.get(d) if d else None for d in saved["slots"]]
+        packing = Packing(
+            [i if i in pending else None for i in slots],
+            deque(by_dir[d] for d in saved["queue"] if by_dir[d] in pending),
+        )
+        members = {self.names[by_dir[k]]: v for k, v in saved["members"].items() if k in by_dir}
+        return packing, members
+
+    def save(self, packing: Packing, states: dict[str, dict[str, Any]]) -> None:
+        """Every busy member's state at this step, with the packing, in one atomic file."""
+        save_checkpoint(self.file, {**packing.as_dict(self.names), "members": states})
+
+    def write_mirror(self, packing: Packing) -> None:
+        """``population.json``: the packing, readable."""
+        atomic_write_json(self.mirror, packing.as_dict(self.names))
+
+    def last_state(self, i: int) -> dict[str, Any] | None:
+        """Run ``i``'s state in the last saved checkpoint, if any."""
+        if not self.file.is_file():
+            return None
+        member: dict[str, Any] | None = load_checkpoint(self.file.parent)["members"].get(
+            self.names[i]
+        )
+        return member
