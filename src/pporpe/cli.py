@@ -21,60 +21,57 @@ def _cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
-def _learner_overrides(args: argparse.Namespace) -> dict[str, object]:
-    keys = ("method", "eps", "beta", "eta", "gamma", "lr", "policy", "rpe_form", "compile")
-    return {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
+def _train_flags() -> tuple[Any, dict[str, Any]]:
+    """The generated flags of ``pporpe train`` and their groups: the run's settings
+    (:class:`TrainConfig`), the online learner's (:class:`OnlineConfig`) and batch PPO's
+    (:class:`BatchConfig`, whose ``total_steps`` is ``--steps``)."""
+    from .batch.config import BatchConfig
+    from .cli_flags import ConfigFlags, FlagGroup
+    from .online.config import OnlineConfig, TrainConfig
+
+    shared = frozenset({"env", "seed", "checkpoint_every", "eval_episodes"})
+    groups = {
+        "run": FlagGroup("run", TrainConfig, skip=frozenset({"learner"})),
+        "online": FlagGroup("online learner", OnlineConfig),
+        "batch": FlagGroup("batch PPO", BatchConfig, skip=shared, rename={"total_steps": "steps"}),
+    }
+    return ConfigFlags(list(groups.values())), groups
+
+
+def _refuse_other_kinds_flags(args: argparse.Namespace, flags: Any, own: set[Any]) -> None:
+    """A flag that no group of this learner kind has is an error naming it."""
+    for flag in flags.given(args):
+        if not any(group in own for group, _ in flags.owners[flag]):
+            kinds = " / ".join(g.name for g, _ in flags.owners[flag])
+            raise ValueError(f"--{flag.replace('_', '-')} applies to the {kinds} only")
 
 
 def _online_config(args: argparse.Namespace) -> object:
+    from .cli_flags import values_for
     from .online.config import OnlineConfig, TrainConfig
 
-    learner = OnlineConfig(**_learner_overrides(args))  # type: ignore[arg-type]
-    return TrainConfig(
-        env=args.env,
-        seed=args.seed,
-        episodes=200 if args.episodes is None and args.steps is None else args.episodes,
-        steps=args.steps,
-        checkpoint_every=args.checkpoint_every,
-        eval_episodes=args.eval_episodes,
-        learner=learner,
-    )
-
-
-_BATCH_ARGS = {
-    "method": "method",
-    "eps": "eps",
-    "beta": "beta",
-    "eta": "eta",
-    "gamma": "gamma",
-    "lr": "lr",
-    "policy": "policy",
-    "rpe_form": "rpe_form",
-    "steps": "total_steps",
-    "n_envs": "n_envs",
-    "n_steps": "n_steps",
-    "batch_size": "batch_size",
-    "n_epochs": "n_epochs",
-    "vec_env": "vec_env",
-    "checkpoint_every": "checkpoint_every",
-    "eval_episodes": "eval_episodes",
-}
+    flags, groups = _train_flags()
+    _refuse_other_kinds_flags(args, flags, {groups["run"], groups["online"]})
+    run = values_for(flags, args, groups["run"])
+    if "steps" in run and "episodes" not in run:
+        run["episodes"] = None  # a budget in steps instead of the default 200 episodes
+    learner = OnlineConfig(**values_for(flags, args, groups["online"]))
+    return TrainConfig(**run, learner=learner)
 
 
 def _batch_config(args: argparse.Namespace) -> object:
     from .batch.config import zoo_config
+    from .cli_flags import values_for
 
-    if args.episodes is not None:
+    flags, groups = _train_flags()
+    if hasattr(args, "episodes"):
         raise ValueError("--learner batch trains for --steps (environment steps), not --episodes")
-    if args.compile is not None:
-        raise ValueError("--compile / --no-compile apply to the online learner only")
-    overrides = {
-        field: getattr(args, arg)
-        for arg, field in _BATCH_ARGS.items()
-        if getattr(args, arg, None) is not None
-    }
+    _refuse_other_kinds_flags(args, flags, {groups["run"], groups["batch"]})
+    run = values_for(flags, args, groups["run"])
+    run.pop("steps", None)
+    overrides = {**run, **values_for(flags, args, groups["batch"])}
     # per-task defaults (rl-baselines3-zoo where it has the task), then the given options
-    return zoo_config(args.env, seed=args.seed, **overrides)
+    return zoo_config(overrides.pop("env", "pendulum"), **overrides)
 
 
 _CONFIG_FROM_ARGS = {"online": _online_config, "batch": _batch_config}
@@ -236,14 +233,8 @@ def _nonneg_float(text: str) -> float:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``pporpe`` command."""
-    parser = argparse.ArgumentParser(
-        prog="pporpe",
-        description="PPO-RPE, PPO and PPO-RB: train, evaluate and reproduce the paper.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_figures(sub: Any) -> None:
+    """The ``pporpe figures`` subcommand."""
     fig = sub.add_parser(
         "figures", help="draw the paper's analytic figures (relative ratio, negative loss)"
     )
@@ -253,84 +244,35 @@ def build_parser() -> argparse.ArgumentParser:
     fig.add_argument("--eta", type=float, default=0.3, help="PPO-RB rollback eta >= 0")
     fig.set_defaults(func=_cmd_figures)
 
-    tr = sub.add_parser("train", help="train on one task: the paper's online learner or batch PPO")
+
+def _add_train(sub: Any) -> None:
+    """The ``pporpe train`` subcommand."""
+    tr = sub.add_parser(
+        "train",
+        help="train on one task: the paper's online learner or batch PPO",
+        description="Train one run. Every setting of the run, of the online learner and of "
+        "batch PPO is a flag; a flag not given keeps its config's default (for batch PPO, "
+        "rl-baselines3-zoo's per-task defaults where it has the task).",
+    )
     tr.add_argument(
         "--learner",
         choices=["online", "batch"],
         default="online",
         help="online (the paper's Alg. 1, default) or batch (rollouts + minibatch epochs)",
     )
-    tr.add_argument(
-        "--method", choices=["ppo", "rb", "rpe"], default="rpe", help="surrogate (default rpe)"
-    )
-    tr.add_argument(
-        "--env",
-        default="pendulum",
-        help="alias (pendulum, swingup, halfcheetah, ant) or a Gymnasium id",
-    )
-    tr.add_argument("--seed", type=_nonneg_int, default=0, help="seed (int >= 0)")
-    length = tr.add_mutually_exclusive_group()
-    length.add_argument("--episodes", type=_positive_int, help="training episodes (default 200)")
-    length.add_argument(
-        "--steps", type=_positive_int, help="training environment steps (batch: default per task)"
-    )
     tr.add_argument("--out", required=True, help="run folder (resumes if it holds a checkpoint)")
-    tr.add_argument("--eps", type=float, help="threshold eps in (0, 1) (default 0.1)")
-    tr.add_argument("--beta", type=float, help="RPE beta in [0, 1] (default 0.5)")
-    tr.add_argument("--eta", type=float, help="PPO-RB eta >= 0 (default 0.3)")
-    tr.add_argument("--gamma", type=float, help="discount in [0, 1) (default 0.99)")
-    tr.add_argument("--lr", type=float, help="learning rate > 0 (default 3e-4)")
-    tr.add_argument("--policy", choices=["student_t", "normal"], help="policy distribution")
-    tr.add_argument(
-        "--rpe-form",
-        dest="rpe_form",
-        choices=["derived", "printed"],
-        help="PPO-RPE gradient: derived (default) or the paper's printed eq.",
-    )
-    tr.add_argument(
-        "--compile",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="compile the online learner's elementwise update (default: on)",
-    )
     tr.add_argument(
         "--force",
         action="store_true",
         help="start over: remove a previous run's files from --out first",
     )
-    tr.add_argument(
-        "--checkpoint-every",
-        type=_positive_int,
-        default=10,
-        help="episodes (online) or updates (batch) between checkpoints (default 10)",
-    )
-    tr.add_argument(
-        "--n-envs", dest="n_envs", type=_positive_int, help="batch: parallel environments"
-    )
-    tr.add_argument(
-        "--n-steps", dest="n_steps", type=_positive_int, help="batch: rollout steps per environment"
-    )
-    tr.add_argument(
-        "--batch-size", dest="batch_size", type=_positive_int, help="batch: minibatch size"
-    )
-    tr.add_argument(
-        "--n-epochs", dest="n_epochs", type=_positive_int, help="batch: epochs per update"
-    )
-    tr.add_argument(
-        "--vec-env",
-        dest="vec_env",
-        choices=["sync", "async"],
-        help="batch: vector environment kind",
-    )
-    tr.add_argument(
-        "--eval-episodes",
-        type=_nonneg_int,
-        default=50,
-        help="test episodes after training (default 50; 0 to skip)",
-    )
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    _train_flags()[0].add_to(tr)
     tr.set_defaults(func=_cmd_train)
 
+
+def _add_evaluate(sub: Any) -> None:
+    """The ``pporpe evaluate`` subcommand."""
     ev = sub.add_parser("evaluate", help="test a trained run: median, mean and IQR of returns")
     ev.add_argument("run_dir", help="run folder written by `pporpe train`")
     ev.add_argument("--episodes", type=_positive_int, default=50, help="test episodes (default 50)")
@@ -354,6 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.set_defaults(func=_cmd_evaluate)
 
+
+def _add_reproduce(sub: Any) -> None:
+    """The ``pporpe reproduce`` subcommand."""
     rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
     rp.add_argument("spec", help="grid spec, e.g. experiments/quick.toml or experiments/paper.toml")
     rp.add_argument("--out", required=True, help="results folder (re-run to resume)")
@@ -404,9 +349,27 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.set_defaults(func=_cmd_reproduce)
 
+
+def _add_report(sub: Any) -> None:
+    """The ``pporpe report`` subcommand."""
     rep = sub.add_parser("report", help="summary table and figures of a grid's results")
     rep.add_argument("dir", help="results folder written by `pporpe reproduce`")
     rep.set_defaults(func=_cmd_report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``pporpe`` command."""
+    parser = argparse.ArgumentParser(
+        prog="pporpe",
+        description="PPO-RPE, PPO and PPO-RB: train, evaluate and reproduce the paper.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    _add_figures(sub)
+    _add_train(sub)
+    _add_evaluate(sub)
+    _add_reproduce(sub)
+    _add_report(sub)
     return parser
 
 
