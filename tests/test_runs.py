@@ -35,6 +35,7 @@ from pporpe.runs import (
 from pporpe.runs.folder import CHECKPOINT, load_checkpoint, save_checkpoint
 from pporpe.runs.kinds import kinds
 from pporpe.runs.loop import run_queue
+from pporpe.runs.migrate import upgrade_config
 
 FIXTURES = Path(__file__).parent / "fixtures"
 BEHAVIOUR = json.loads((FIXTURES / "behaviour_v0_1.json").read_text())
@@ -107,7 +108,9 @@ def fixture_config(name: str) -> Any:
         data.pop("learner")
         return config_from_dict(BatchConfig, data)
     # What the run ran with: the choice fields it predates at pporpe 0.2's values.
-    return config_from_dict(TrainConfig, get_kind("online").upgrade_config(data))
+    upgraded = upgrade_config(data)
+    assert upgraded.pop("kind") == "online"
+    return config_from_dict(TrainConfig, upgraded)
 
 
 @pytest.mark.parametrize("name", ["batch"])
@@ -532,3 +535,32 @@ def test_train_restores_the_callers_torch_threads(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="num_threads"):
         train(cfg, tmp_path / "b", progress=False, num_threads=0)
     assert not (tmp_path / "b").exists()
+
+
+def test_every_online_setting_added_since_0_1_has_its_old_value_in_migrate() -> None:
+    """A setting added to OnlineConfig must say, in pporpe.runs.migrate, what runs written
+    before it ran with; otherwise an old folder would be read with today's default."""
+    import dataclasses
+
+    from pporpe.runs.migrate import ONLINE_FIELDS_ADDED
+
+    old = set(BEHAVIOUR["online"]["config"]["learner"])
+    every = {f.name for f in dataclasses.fields(OnlineConfig)}
+    assert old | set(ONLINE_FIELDS_ADDED) == every
+    assert old & set(ONLINE_FIELDS_ADDED) <= {"amsgrad_decay"}  # 0.1.0 wrote it already
+
+
+def test_a_folder_without_the_test_bed_settings_reads_as_what_it_ran(tmp_path: Path) -> None:
+    """config.json of a 0.4 run has no policy_gradient, time_limit, min_scale: it reads with
+    the values every run had then, and it is the same run as today's config with them."""
+    cfg = TrainConfig(episodes=1, eval_episodes=0, learner=OnlineConfig(layers=1, units=4))
+    run = tmp_path / "run"
+    train(cfg, run, progress=False)
+    data = json.loads((run / "config.json").read_text())
+    for name in ("policy_gradient", "time_limit", "min_scale"):
+        del data["learner"][name]
+    (run / "config.json").write_text(json.dumps(data))
+    _, read = read_config(run)
+    assert (read.learner.policy_gradient, read.learner.time_limit) == ("surrogate", "bootstrap")
+    assert read.learner.min_scale == 1e-3 and read == cfg
+    assert open_run_dir(run, json.loads((run / "config.json").read_text()))[1]  # done

@@ -21,8 +21,9 @@ from ..config import config_from_dict
 from ..envs import ReplayableEnv, env_spec_summary, make_env
 from ..policy import Policy
 from ..runs.kinds import Episode, Progress, register_kind
+from ..runs.migrate import check_online_resumable
 from ..surrogates import regularization_amount
-from .config import V0_2_CHOICES, OnlineConfig, TrainConfig
+from .config import OnlineConfig, TrainConfig
 from .learner import OnlineLearner
 from .population import SHARED_FIELDS, PopulationLearner
 from .stats import StepStats
@@ -98,14 +99,12 @@ class OnlineTrainer:
         s = _Slot(cfg)
         if state is None:
             self.learner.reset_member(slot, cfg.learner, cfg.seed)
-        elif "params" not in state["learner"]:
-            s.env.close()
-            raise ValueError(
-                "this run was started by pporpe 0.1.0, whose online learner sampled from "
-                "torch's global random stream; it cannot be continued exactly. Its policy "
-                "still evaluates (pporpe evaluate); train it again in a new folder"
-            )
         else:
+            try:
+                check_online_resumable(state["learner"])
+            except ValueError:
+                s.env.close()
+                raise
             self.learner.load_member_state(slot, cfg.learner, state["learner"])
             s.episodes, s.total_steps = int(state["episodes"]), int(state["total_steps"])
             ep = state["episode"]
@@ -280,16 +279,6 @@ class OnlineKind:
     def make_trainer(self, cfg: TrainConfig, capacity: int) -> OnlineTrainer:
         """A population of ``capacity`` slots for runs shaped like ``cfg``."""
         return OnlineTrainer(cfg, capacity)
-
-    def upgrade_config(self, data: dict[str, Any]) -> dict[str, Any]:
-        """``config.json`` of a run written before the learner choices of pporpe 0.2.x
-        existed: the missing ones are what that run ran with (:data:`V0_2_CHOICES`), not
-        today's defaults."""
-        learner = data.get("learner")
-        if not isinstance(learner, dict):
-            return data
-        missing = {k: v for k, v in V0_2_CHOICES.items() if k not in learner}
-        return {**data, "learner": {**learner, **missing}} if missing else data
 
     def budget(self, cfg: TrainConfig) -> tuple[int, str]:
         """Episodes, or steps when the run is measured in steps."""

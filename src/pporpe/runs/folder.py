@@ -9,9 +9,8 @@ A run folder holds:
 * ``evaluation.json`` median / mean / IQR of the test episodes (when requested);
 * ``done.json``       written last: the run is complete, with its counters.
 
-Folders written by pporpe 0.1.0 have no ``"kind"`` in ``config.json``: a batch run said
-``"learner": "batch"`` and an online run nested its learner settings under ``"learner"``.
-They are still read (:func:`read_config`), and resumed as the same run.
+Folders written by earlier versions are read (:func:`read_config`) and resumed as the same
+run: :mod:`pporpe.runs.migrate` upgrades what they hold.
 """
 
 from __future__ import annotations
@@ -25,6 +24,7 @@ import torch
 from ..config import config_from_dict, config_to_dict
 from ..io import atomic_path, atomic_write_json
 from .kinds import LearnerKind, get_kind
+from .migrate import upgrade_config
 
 __all__ = [
     "CHECKPOINT",
@@ -45,25 +45,9 @@ def config_json(kind: LearnerKind, cfg: Any) -> dict[str, Any]:
     return {"kind": kind.name, **config_to_dict(cfg)}
 
 
-def _normalized(data: dict[str, Any]) -> dict[str, Any]:
-    """``config.json`` content in the current form: adds the kind of 0.1.0 folders, then
-    lets the kind fill in settings its older versions did not write
-    (``kind.upgrade_config``, optional), with the values those versions ran with."""
-    if "kind" not in data:
-        if data.get("learner") == "batch":
-            data = {"kind": "batch", **{k: v for k, v in data.items() if k != "learner"}}
-        else:
-            data = {"kind": "online", **data}
-    try:
-        upgrade = getattr(get_kind(data["kind"]), "upgrade_config", None)
-    except (KeyError, ValueError):
-        return data
-    return data if upgrade is None else upgrade(data)
-
-
 def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
     """The kind and configuration of ``config.json`` content, or None if it does not parse."""
-    data = _normalized(data)
+    data = upgrade_config(data)
     try:
         kind = get_kind(data["kind"])
         body = {k: v for k, v in data.items() if k != "kind"}
@@ -102,7 +86,7 @@ def read_config(run_dir: str | Path) -> tuple[LearnerKind, Any]:
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder (it has no config.json)")
-    data = _normalized(_read_json(path))
+    data = upgrade_config(_read_json(path))
     kind = get_kind(data.pop("kind"))
     return kind, config_from_dict(kind.config_type, data, str(path))
 
@@ -129,7 +113,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
         saved = _read_json(path)
         stored = _parsed(saved)
         if stored is None or stored != _parsed(config):
-            differ = _differences(_normalized(saved), _normalized(config))
+            differ = _differences(upgrade_config(saved), upgrade_config(config))
             raise ValueError(
                 f"{run} holds a run with a different config (differing: "
                 f"{', '.join(differ) or 'unreadable settings'}); use another --out folder, "

@@ -18,6 +18,7 @@ from typing import Any
 
 from ..io import atomic_write_json
 from .folder import CHECKPOINT, load_checkpoint, save_checkpoint
+from .migrate import packing_names
 
 __all__ = ["POPULATION_FILE", "Packing", "PopulationCheckpoint"]
 
@@ -59,9 +60,7 @@ class PopulationCheckpoint:
         if not self.file.is_file():
             return None
         saved = load_checkpoint(self.file.parent)
-        spelling = next(  # the same job (the same runs), in either spelling
-            (s for s in (self.names, self._full_paths) if saved.get("runs") == s), None
-        )
+        spelling = packing_names(saved.get("runs"), self.names, self._full_paths)
         if spelling is None:
             return None
         by_dir = {name: i for i, name in enumerate(spelling)}
