@@ -354,6 +354,34 @@ def markdown(pairs: list[dict[str, Any]], paths: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def step_table(root: Path) -> list[str]:
+    """The update-by-update comparison of ``step.json`` (benchmarks/testbed_step.py)."""
+    path = root / "step.json"
+    if not path.exists():
+        return []
+    runs = json.loads(path.read_text())["runs"]
+    names = ("policy hidden", "policy output", "value")
+    lines = [
+        "",
+        "## Update by update",
+        "",
+        "`python benchmarks/testbed_step.py --checkout TEST_ET`: the largest parameter gap after",
+        "n updates, relative to the largest move from the start (policy hidden layers / policy",
+        "output layer / value network).",
+        "",
+        "| t-momentum | n | pporpe against the test bed | pporpe against itself, 1 ulp away |",
+        "| --- | --- | --- | --- |",
+    ]
+    for r in runs:
+        label = "off (k_dof inf)" if r["k_dof"] == float("inf") else f"on (k_dof {r['k_dof']:g})"
+        for n, ours, ctl in zip(r["after_updates"], r["testbed"], r["control_one_ulp"],
+                                strict=True):  # fmt: skip
+            a = " / ".join(f"{ours[k]['relative']:.1e}" for k in names)
+            b = " / ".join(f"{ctl[k]['relative']:.1e}" for k in names)
+            lines.append(f"| {label} | {n} | {a} | {b} |")
+    return lines
+
+
 def plot_curves(records: list[dict[str, Any]], task: str, config: str, out: Path) -> None:
     """The two implementations' mean learning curves with 95% bands, one figure."""
     import matplotlib
@@ -415,7 +443,7 @@ def summarize(args: argparse.Namespace) -> int:
             "toward_table_i": paths,
         },
     )
-    text = markdown(pairs, paths)
+    text = markdown(pairs, paths) + "\n".join(step_table(args.root)) + "\n"
     atomic_write_text(args.root / "summary.md", text)
     print(text)
     return 0
