@@ -65,6 +65,13 @@ OnlineConfig fields that give the paper's value: the learning rate, the width, t
 t-soft target network (tau 0.3, nu 1), the traces' lambda_max2 and kappa, 0.01 per
 regulariser with the reward scaled by 1 - gamma, and PPO's clip on the objective."""
 
+DIAGNOSTIC: dict[str, dict[str, Any]] = {"joint_head": {"head_tensors": "joint"}}
+"""Changes of the test bed's settings toward pporpe's own choices, for diagnosis:
+``joint_head``, the policy's output layer as one tensor pair for the t-momentum."""
+
+GROUPS: dict[str, dict[str, Any]] = {**TOWARD_TABLE_I, **DIAGNOSTIC}
+"""Every group a config name may add to ``testbed``, in the order of folder names."""
+
 PAPER_THROUGH_TESTBED: dict[str, Any] = {
     **TOWARD_TABLE_I["lr"],
     **TOWARD_TABLE_I["width"],
@@ -83,30 +90,30 @@ with the regularisers on)."""
 
 def settings_for(config: str) -> dict[str, Any]:
     """pporpe's learner settings of a config name: ``testbed``, ``paper``, or ``testbed``
-    followed by groups of :data:`TOWARD_TABLE_I` joined by ``+`` (``testbed+lr+width``).
+    followed by groups of :data:`GROUPS` joined by ``+`` (``testbed+lr+width``).
     Raises ValueError naming what is allowed."""
     from pporpe.online.config import TESTBED
 
     if config == "paper":
         return {**TESTBED, **PAPER_THROUGH_TESTBED}
     head, *groups = config.split("+")
-    unknown = [g for g in groups if g not in TOWARD_TABLE_I]
+    unknown = [g for g in groups if g not in GROUPS]
     if head != "testbed" or unknown or len(set(groups)) != len(groups):
         raise ValueError(
             f"config must be 'paper', 'testbed' or 'testbed' with distinct groups of "
-            f"{sorted(TOWARD_TABLE_I)} joined by '+'; got {config!r}"
+            f"{sorted(GROUPS)} joined by '+'; got {config!r}"
         )
     out = dict(TESTBED)
     for g in groups:
-        out.update(TOWARD_TABLE_I[g])
+        out.update(GROUPS[g])
     return out
 
 
 def canonical_config(config: str) -> str:
-    """A config's groups in :data:`TOWARD_TABLE_I`'s order (its folder name)."""
+    """A config's groups in :data:`GROUPS`' order (its folder name)."""
     settings_for(config)
     head, *groups = config.split("+")
-    order = list(TOWARD_TABLE_I)
+    order = list(GROUPS)
     return "+".join([head, *sorted(groups, key=order.index)])
 
 
@@ -369,8 +376,9 @@ def step_table(root: Path) -> list[str]:
         "n updates, relative to the largest move from the start (policy hidden layers / policy",
         "output layer / value network).",
         "",
-        "| t-momentum | n | pporpe against the test bed | pporpe against itself, 1 ulp away |",
-        "| --- | --- | --- | --- |",
+        "| t-momentum | pporpe's head | n | pporpe against the test bed "
+        "| pporpe against itself, 1 ulp away |",
+        "| --- | --- | --- | --- | --- |",
     ]
     for r in runs:
         label = "off (k_dof inf)" if r["k_dof"] == float("inf") else f"on (k_dof {r['k_dof']:g})"
@@ -378,7 +386,7 @@ def step_table(root: Path) -> list[str]:
                                 strict=True):  # fmt: skip
             a = " / ".join(f"{ours[k]['relative']:.1e}" for k in names)
             b = " / ".join(f"{ctl[k]['relative']:.1e}" for k in names)
-            lines.append(f"| {label} | {n} | {a} | {b} |")
+            lines.append(f"| {label} | {r.get('head_tensors', 'joint')} | {n} | {a} | {b} |")
     return lines
 
 
@@ -482,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
     own = sub.add_parser("pporpe", help="run pporpe's learner with the test bed's settings")
     own.add_argument("--config", type=config_arg, default="testbed",
                      help="testbed, paper, or testbed+GROUP+... (groups: "
-                     f"{', '.join(TOWARD_TABLE_I)})")  # fmt: skip
+                     f"{', '.join(GROUPS)})")  # fmt: skip
     own.add_argument("--population", type=int, default=10, help="runs trained at once")
     summ = sub.add_parser("summarize", help="tables, figures and summary.json from the files")
     summ.add_argument("--root", type=Path, default=RESULTS, help="folder of the result files")

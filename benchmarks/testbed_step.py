@@ -9,10 +9,11 @@ from the test bed's, relative to how far the test bed's moved from their start:
 
     python benchmarks/testbed_step.py --checkout ~/test_et [--steps 200] [--json FILE]
 
-It runs twice: with the t-momentum (``k_dof`` 1, the test bed's) and without it (``k_dof``
-inf, plain LaProp momentum on both sides). pporpe's policy head is one output layer where
-the test bed has three (degrees of freedom, location, scale), so with the t-momentum the
-head's statistics are pooled differently; without it every difference is float rounding.
+It runs three times: without the t-momentum (``k_dof`` inf, plain LaProp momentum on both
+sides), with it (``k_dof`` 1, the test bed's), and with it but pporpe's joint policy head
+(``head_tensors="joint"``: one output layer for the t-momentum where the test bed has
+three), which shows what that choice alone changes. The yardstick of float rounding is
+pporpe against itself started one ulp away.
 """
 
 from __future__ import annotations
@@ -114,13 +115,14 @@ def run_pporpe(cfg: OnlineConfig, s0: np.ndarray, u0: np.ndarray, data: list,
     return thetas
 
 
-def compare(ac_cls: Any, k_dof: float, steps: int, seed: int) -> dict[str, Any]:
+def compare(ac_cls: Any, k_dof: float, head: str, steps: int, seed: int) -> dict[str, Any]:
     """Both learners from the same start; per step the relative parameter gap."""
     torch.manual_seed(seed)
     opt = {"lr": 1e-4, "amsgrad": 0.99999, "method": "tlaprop", "k_dof": k_dof}
     ac = ac_cls(OBS, ACT, False, opt_params=opt, **CONFIGS["testbed"])
     theta0 = testbed_theta(ac)
-    cfg = OnlineConfig(**{**TESTBED, "k_dof": k_dof, "compile": False})  # type: ignore[arg-type]
+    settings = {**TESTBED, "k_dof": k_dof, "head_tensors": head, "compile": False}
+    cfg = OnlineConfig(**settings)  # type: ignore[arg-type]
     rng = np.random.default_rng(seed)
     s0 = rng.normal(size=OBS).astype(np.float32)
     u0 = rng.normal(size=ACT).astype(np.float32)
@@ -134,6 +136,7 @@ def compare(ac_cls: Any, k_dof: float, steps: int, seed: int) -> dict[str, Any]:
     control = run_pporpe(cfg, s0, u0, data, nudged)
     return {
         "k_dof": k_dof,
+        "head_tensors": head,
         "steps": steps,
         "testbed": gaps_per_step(ours, theirs, theta0, cfg),
         "control_one_ulp": gaps_per_step(ours, control, theta0, cfg),
@@ -186,14 +189,16 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     ac_cls = load_ac(args.checkout.resolve())
-    runs = [compare(ac_cls, k, args.steps, args.seed) for k in (math.inf, 1.0)]
+    cases = ((math.inf, "per_output"), (1.0, "per_output"), (1.0, "joint"))
+    runs = [compare(ac_cls, k, head, args.steps, args.seed) for k, head in cases]
     print("largest parameter gap after n updates, relative to the largest move (policy hidden,")
     print("policy output, value): pporpe against the test bed | pporpe against itself 1 ulp away")
     for r in runs:
         for when in sorted({1, 2, 10, 50, 100, r["steps"]}):
             if when <= r["steps"]:
                 ours, control = r["testbed"][when - 1], r["control_one_ulp"][when - 1]
-                print(f"k_dof {r['k_dof']}, n = {when}: {row_text(ours)} | {row_text(control)}")
+                label = f"k_dof {r['k_dof']}, {r['head_tensors']} head, n = {when}"
+                print(f"{label}: {row_text(ours)} | {row_text(control)}")
     keep = sorted({1, 2, 5, 10, 20, 50, 100, 150, args.steps} & set(range(1, args.steps + 1)))
     for r in runs:  # the JSON holds the gaps after these numbers of updates
         r["after_updates"] = keep

@@ -191,3 +191,93 @@ def test_tau_one_keeps_the_target_equal_to_the_online_network() -> None:
     for _ in range(5):
         p.step(np.array([rng.normal()]), rng.normal(size=(1, OBS)), no, no, forced_u=u)
         assert torch.equal(p.P[2, 0], p.P[1, 0])
+
+
+def _segments64(lay: object, parts: tuple[int, ...]) -> list[tuple[list[int], int]]:
+    """The test bed's parameter tensors of one policy network, written out here: every
+    hidden tensor of the layout, then the output layer as one (weight, bias) per part;
+    each as (flat positions in the padded layout, element count)."""
+    units = lay.units  # type: ignore[attr-defined]
+    segs = [(list(range(s.offset, s.offset + s.real[0])), s.real[0])
+            for s in lay.slots[:-2]]  # type: ignore[attr-defined]  # fmt: skip
+    w0, b0, first = lay.out_w.offset, lay.out_b.offset, 0  # type: ignore[attr-defined]
+    weights, biases = [], []
+    for n in parts:
+        weights.append((list(range(w0 + first * units, w0 + (first + n) * units)), n * units))
+        biases.append((list(range(b0 + first, b0 + first + n)), n))
+        first += n
+    return segs + weights + biases
+
+
+def test_split_head_t_momentum_is_per_part_against_a_float64_reference() -> None:
+    """One td-AmsProp step with the policy output as three tensors (location, scale, dof):
+    the momentum of every element equals TLaProp's rule computed per tensor in float64,
+    w = (n + k n) / (k n + |gv - m|^2) over that tensor's n elements, m += w/(W+w) (gv - m)."""
+    from pporpe.nn.batched import NetLayout
+    from pporpe.online.update import update_chunk
+
+    parts = (2, 2, 1)
+    lay = NetLayout(3, 5, 2, 8, True, head_parts=parts)
+    R, U, S, K = lay.n_rows, lay.units, lay.n_seg, 1
+    gen = torch.Generator().manual_seed(0)
+    real = torch.zeros(2, K, R * U)
+    real[0, 0, lay.real_index[0]] = 1.0
+    real[1, 0, lay.real_index[1]] = 1.0
+    real = real.view(2, K, R, U)
+    G = torch.randn(2, K, R, U, generator=gen) * real
+    m = torch.randn(2, K, R, U, generator=gen) * real * 0.5
+    W = torch.rand(2, K, S, generator=gen) + 1.0
+    k_dof = 1.0
+    n = torch.tensor(lay.segments, dtype=torch.float32).T.reshape(2, 1, S)
+    num, den = n * (1 + k_dof), torch.where(n > 0, n * k_dof, 1.0)
+    beta2, eps = 0.999, 1e-8
+    sqrt_bc2 = torch.tensor([math.sqrt(1 - beta2)])
+    P = torch.zeros(3, K, R, U)
+    z = torch.zeros(K)
+    m0, W0 = m.clone().double(), W.clone().double()
+    update_chunk(
+        P, G, torch.zeros_like(G), torch.zeros_like(G), torch.zeros_like(G), torch.zeros_like(G),
+        m, W, torch.ones(2, K), z, z, torch.full((K,), beta2), torch.full((K,), 1 - beta2),
+        torch.ones(K), sqrt_bc2, torch.full((K,), eps), torch.zeros(K, dtype=torch.bool),
+        torch.full((K,), 0.1), torch.full((K,), 1 - 1 / 0.9), num, den, torch.full((K,), 1e-3),
+        torch.ones(K, dtype=torch.bool), lay.row_seg, lay.col_seg, lay.bias_row,
+    )  # fmt: skip
+    q = G[0, 0].double().reshape(-1)
+    gv = q / (torch.sqrt((1 - beta2) * q * q) / math.sqrt(1 - beta2) + eps)
+    d = gv - m0[0, 0].reshape(-1)
+    expected = m0[0, 0].reshape(-1).clone()
+    segs = _segments64(lay, parts)
+    assert len(segs) == S
+    for j, (idx, count) in enumerate(segs):
+        w = (count + k_dof * count) / (k_dof * count + float((d[idx] ** 2).sum()))
+        expected[idx] += w / (float(W0[0, 0, j]) + w) * d[idx]
+    torch.testing.assert_close(m[0, 0].reshape(-1).double(), expected, rtol=1e-5, atol=1e-7)
+    # the joint head pools the three parts' sums: the same buffers give other numbers there
+    joint = NetLayout(3, 5, 2, 8, True)
+    assert joint.n_seg == S - 4 and joint.col_seg is None
+
+
+def test_split_head_changes_only_the_output_layer_at_first() -> None:
+    """Joint and split heads on the same data: after the first update (t-momentum weight
+    1 for any tensor) they differ by rounding in the output layer only; after the second
+    the output layer differs by far more than rounding, and far more than the rest."""
+    configs = [cfg(method="ppo", head_tensors=h) for h in ("joint", "per_output")]
+    joint, split = pop(configs[:1], [11]), pop(configs[1:], [11])
+    assert split.lay.n_seg == joint.lay.n_seg + 4
+    u = torch.tensor([[0.3, -0.2]])
+    no = np.zeros(1, dtype=bool)
+    rng = np.random.default_rng(1)
+    obs = [rng.normal(size=(1, OBS)) for _ in range(3)]
+    for p in (joint, split):
+        p.begin_episode([0], obs[0], forced_u=u)
+    out = torch.zeros(joint.lay.n_rows, dtype=torch.bool)
+    out[joint.lay.out_w.offset // joint.lay.units :] = True
+    gaps = []
+    for step in (1, 2):
+        for p in (joint, split):
+            p.step(np.array([0.5]), obs[step], no, no, forced_u=u)
+        gap = (joint.P[0, 0] - split.P[0, 0]).abs()
+        gaps.append((float(gap[out].max()), float(gap[~out].max())))
+    (out1, rest1), (out2, rest2) = gaps
+    assert rest1 == 0.0 and out1 < 1e-6
+    assert out2 > 100 * max(out1, 1e-9) and out2 > 100 * max(rest2, 1e-9)

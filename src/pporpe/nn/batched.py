@@ -71,10 +71,19 @@ class NetLayout:
         obs_dim: input features.
         raw_dim: policy output size (the value net's single output is padded to it).
         layers, units, layer_norm: as in :func:`pporpe.nn.mlp.mlp`.
+        head_parts: sizes of the parts of the policy output (e.g. location, scale, degrees
+            of freedom) whose weights and biases count as separate tensors for the
+            t-momentum (:attr:`segments`); None: the output layer is one weight and one bias.
     """
 
     def __init__(
-        self, obs_dim: int, raw_dim: int, layers: int, units: int, layer_norm: bool
+        self,
+        obs_dim: int,
+        raw_dim: int,
+        layers: int,
+        units: int,
+        layer_norm: bool,
+        head_parts: tuple[int, ...] | None = None,
     ) -> None:
         self.obs_dim, self.raw_dim = obs_dim, raw_dim
         self.layers, self.units, self.layer_norm = layers, units, layer_norm
@@ -104,12 +113,20 @@ class NetLayout:
         self.slots: tuple[TensorSlot, ...] = tuple(slots)
         self.n_pad = offset
         self.n_rows = offset // units
-        self.n_seg = len(slots)
         seg = torch.empty(self.n_rows, dtype=torch.int64)
         for i, s in enumerate(slots):
             seg[s.offset // units : s.offset // units + s.rows] = i
         self.row_seg = seg
         """Segment (tensor) index of every row of ``units`` elements."""
+        self.segments: tuple[tuple[int, int], ...] = tuple(s.real for s in slots)
+        """Real elements (policy, value) of every segment: the tensors of the t-momentum."""
+        self.col_seg: Tensor | None = None
+        """With ``head_parts``: the segment of every column of the output bias's row."""
+        self.bias_row = self.out_b.offset // units
+        """The row of the output bias."""
+        if head_parts is not None:
+            self._split_head(head_parts)
+        self.n_seg = len(self.segments)
         self.n_real = (sum(s.real[0] for s in slots), sum(s.real[1] for s in slots))
         """Number of real parameters of the (policy, value) network."""
         idx: list[Tensor] = []
@@ -122,6 +139,24 @@ class NetLayout:
             dtype=torch.int64,
         )
         """Rows of the LayerNorm scales and shifts (one row each)."""
+
+    def _split_head(self, parts: tuple[int, ...]) -> None:
+        """The output layer as one tensor pair per part of the output (``parts`` sizes, in
+        order; the value's one output lies in the first): weight rows and bias columns of
+        part j form their own segments, so the t-momentum treats them as separate layers."""
+        units, raw = self.units, self.raw_dim
+        if sum(parts) != raw or min(parts) < 1 or raw > units:
+            raise ValueError(f"head_parts must be sizes >= 1 summing to raw_dim {raw} <= units")
+        base = len(self.segments) - 2  # the joint output weight and bias were the last two
+        part_of = torch.cat([torch.full((n,), j, dtype=torch.int64) for j, n in enumerate(parts)])
+        first_w = self.out_w.offset // units
+        self.row_seg[first_w : first_w + raw] = base + part_of
+        bias_segs = base + len(parts) + part_of
+        self.col_seg = torch.cat([bias_segs, torch.full((units - raw,), int(bias_segs[0]))])
+        self.row_seg[self.bias_row] = int(bias_segs[0])
+        weights = [(n * units, units if j == 0 else 0) for j, n in enumerate(parts)]
+        biases = [(n, 1 if j == 0 else 0) for j, n in enumerate(parts)]
+        self.segments = (*self.segments[:base], *weights, *biases)
 
     def view(self, flat: Tensor, slot: TensorSlot) -> Tensor:
         """The ``[B, *slot.shape]`` view of ``slot`` inside ``flat`` of shape ``[B, n_pad]``."""

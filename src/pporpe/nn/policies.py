@@ -95,6 +95,12 @@ class PolicyHead(ABC):
         """Return ``softplus(scale_raw) + min_scale`` (always > 0)."""
         return F.softplus(scale_raw) + self.min_scale
 
+    def parts(self) -> tuple[int, ...]:
+        """Sizes of the parts of ``raw`` in order: location and scale (and the student-t's
+        degrees of freedom), e.g. for one output layer per part."""
+        extra = self.raw_dim - 2 * self.act_dim
+        return (self.act_dim, self.act_dim, *((extra,) if extra else ()))
+
     def location(self, raw: Tensor) -> Tensor:
         """Return the location ``loc`` (shape ``[..., act_dim]``): the test-time ``u``."""
         self._check(raw)

@@ -26,6 +26,7 @@ __all__ = [
     "AUTHOR_CHOICES",
     "CRITIC_SIGNALS",
     "ENTROPY_DENSITIES",
+    "HEAD_TENSORS",
     "POLICY_GRADIENTS",
     "TD_UNITS",
     "TESTBED",
@@ -52,6 +53,8 @@ PolicyGradient = Literal["surrogate", "weighted_score"]
 POLICY_GRADIENTS: tuple[str, ...] = get_args(PolicyGradient)
 TimeLimit = Literal["bootstrap", "terminal"]
 TIME_LIMITS: tuple[str, ...] = get_args(TimeLimit)
+HeadTensors = Literal["joint", "per_output"]
+HEAD_TENSORS: tuple[str, ...] = get_args(HeadTensors)
 
 
 AUTHOR_CHOICES: Mapping[str, Any] = MappingProxyType(
@@ -123,6 +126,7 @@ TESTBED: Mapping[str, Any] = MappingProxyType(
         "policy_gradient": "weighted_score",
         "time_limit": "terminal",
         "min_scale": 1e-8,
+        "head_tensors": "per_output",
     }
 )
 """The learner of the author's public test bed (GitHub kbys-t/test_et, ``modules/ac.py``
@@ -145,11 +149,12 @@ Table I states other values); ``benchmarks/testbed.py`` runs both side by side.
   update with rate 1 reproduces (the target equals the online network after every step);
 * ``time_limit="terminal"``: its TD target drops the bootstrap at every ``done``, the
   time limit's included;
-* ``min_scale=1e-8``: its scale is softplus + 1e-8.
+* ``min_scale=1e-8``: its scale is softplus + 1e-8;
+* ``head_tensors="per_output"``: its policy head is three output layers (degrees of
+  freedom, location, scale), each a weight and a bias with their own t-momentum statistics.
 
-The remaining differences (the policy head's three output layers with their own
-t-momentum statistics, the multivariate student-t of more than one action dimension,
-the seeding) are listed in docs/online-learner.md, *The author's test bed*."""
+The remaining differences (the multivariate student-t of more than one action dimension,
+the random streams) are listed in docs/testbed.md."""
 
 
 @dataclass(frozen=True)
@@ -256,6 +261,12 @@ class OnlineConfig:
     min_scale: float = 1e-3
     """Floor of the policy's scale, scale = softplus(raw) + min_scale, a finite number
     > 0 (the author's test bed: 1e-8)."""
+    head_tensors: HeadTensors = "joint"
+    """The policy's output layer for the optimiser's t-momentum, which weighs each
+    parameter tensor by its own statistics: one weight and one bias (``"joint"``, default),
+    or one of each per part of the output, location, scale and degrees of freedom
+    (``"per_output"``, the author's test bed, whose head is three layers). The network
+    computes the same either way."""
     compile: bool = True
     """Compile the elementwise update (traces, td-AmsProp, t-soft) with ``torch.compile``:
     about 2x faster per step on this project's 2-core CPU after a compile of a few seconds
@@ -332,6 +343,7 @@ class OnlineConfig:
             ("amsgrad_max", AMSGRAD_MAXES),
             ("policy_gradient", POLICY_GRADIENTS),
             ("time_limit", TIME_LIMITS),
+            ("head_tensors", HEAD_TENSORS),
         ):
             value = getattr(self, name)
             require(value in allowed, name, value, f"one of {list(allowed)}")

@@ -124,12 +124,14 @@ def write_constants(pop: PopulationLearner, k: int, cfg: OnlineConfig) -> None:
     c["omb_mom"][k] = 1.0 - beta1
     c["w_coef"][k] = 0.0 if mom_only else 1.0 - 1.0 / beta1
     for j in range(2):
-        n = torch.tensor([float(s.real[j]) for s in pop.lay.slots])
+        n = torch.tensor([float(seg[j]) for seg in pop.lay.segments])
         if mom_only:
             pop.num[j, k], pop.den[j, k] = 1.0, 0.0
         else:
+            # an empty segment (a part of a split head the value network does not have)
+            # gets weight 0 instead of 0 / 0
             pop.num[j, k] = n * (1.0 + cfg.k_dof)
-            pop.den[j, k] = n * cfg.k_dof
+            pop.den[j, k] = torch.where(n > 0, n * cfg.k_dof, 1.0)
     nps["beta1"][k], nps["beta2"][k] = beta1, beta2
     nps["lr"][k], nps["ams_decay"][k] = cfg.lr, cfg.amsgrad_decay
     c64["tau"][k] = cfg.tau

@@ -65,7 +65,7 @@ from .update import (
 __all__ = ["SHARED_FIELDS", "PopulationLearner", "StepStats"]
 
 SHARED_FIELDS: tuple[str, ...] = (
-    "layers", "units", "layer_norm", "activation", "policy", "min_scale",
+    "layers", "units", "layer_norm", "activation", "policy", "min_scale", "head_tensors",
 )  # fmt: skip
 """Config fields every member must share (they fix the network shape and its head)."""
 
@@ -127,7 +127,10 @@ class PopulationLearner:
         c0 = configs[0]
         self.head: PolicyHead = make_head(c0.policy, self.act_dim, min_scale=c0.min_scale)
         self.activation = c0.activation
-        self.lay = lay = NetLayout(obs_dim, self.head.raw_dim, c0.layers, c0.units, c0.layer_norm)
+        parts = self.head.parts() if c0.head_tensors == "per_output" else None
+        self.lay = lay = NetLayout(
+            obs_dim, self.head.raw_dim, c0.layers, c0.units, c0.layer_norm, head_parts=parts
+        )
         R, U, S = lay.n_rows, lay.units, lay.n_seg
         self.P = torch.zeros(3, K, R, U)
         """Parameters: policy, value and target networks of every member."""
@@ -499,6 +502,8 @@ class PopulationLearner:
                     scal[2][a:b],
                     act[a:b],
                     self._row_seg,
+                    lay.col_seg,
+                    lay.bias_row,
                 )
             )
         d2 = d2s[0] if len(d2s) == 1 else torch.cat(d2s)

@@ -161,11 +161,15 @@ def update_momentum(
     step_size: Tensor,
     active: Tensor,
     row_seg: Tensor,
+    col_seg: Tensor | None = None,
+    bias_row: int = 0,
 ) -> Tensor:
     """Pass 2: t-momentum and the parameter step (in place); return D2 sums of t-soft.
 
     ``P [3, K, R, U]`` (policy, value, target), ``W num den [2, K, S]``, ``rows [2, K, R]``
-    from pass 1, ``row_seg [R]`` the segment of each row. Returns
+    from pass 1, ``row_seg [R]`` the segment of each row; ``col_seg [U]`` (optional) the
+    segment of each element of row ``bias_row``, which then counts element by element
+    (an output bias split into parts, :class:`~pporpe.nn.batched.NetLayout`). Returns
     ``sum((theta_v - target)^2)`` per member (``[K]``, after the step).
     """
     act = _k4(active)
@@ -173,14 +177,23 @@ def update_momentum(
     _, gv = _normalised(r, vmax_s, signal, sqrt_bc2, opt_eps)
     diff = gv - m
     # t-momentum weight per segment (parameter tensor): index_add of the row sums
+    if col_seg is not None:
+        rows = rows.clone()
+        rows[:, :, bias_row] = 0.0
     sq = torch.zeros_like(W).index_add_(2, row_seg, rows)
+    if col_seg is not None:
+        split = diff[:, :, bias_row]
+        sq.index_add_(2, col_seg, split * split)
     w = num / (sq + den)
     ww = W + w
     k3 = active.view(1, -1, 1)
     mom = mom_only.view(1, -1, 1)
     omb = torch.where(mom, omb_mom.view(1, -1, 1), w / ww)
     W.copy_(torch.where(k3 & ~mom, ww + W * w_coef.view(1, -1, 1), W))
-    m_new = torch.where(act, m + omb[:, :, row_seg].unsqueeze(-1) * diff, m)
+    step = omb[:, :, row_seg].unsqueeze(-1) * diff
+    if col_seg is not None:
+        step[:, :, bias_row] = omb[:, :, col_seg] * diff[:, :, bias_row]
+    m_new = torch.where(act, m + step, m)
     theta_new = torch.where(act, theta - _k4(step_size) * m_new, theta)
     m.copy_(m_new)
     P[:2].copy_(theta_new)
@@ -213,6 +226,8 @@ def update_chunk(
     step_size: Tensor,
     active: Tensor,
     row_seg: Tensor,
+    col_seg: Tensor | None = None,
+    bias_row: int = 0,
 ) -> Tensor:
     """Both passes for a block of members (in place); return their t-soft D2 sums.
 
@@ -225,7 +240,7 @@ def update_chunk(
     )  # fmt: skip
     return update_momentum(
         P, r, vmax_s, m, W, rows, signal, sqrt_bc2, opt_eps, mom_only, omb_mom, w_coef, num,
-        den, step_size, active, row_seg,
+        den, step_size, active, row_seg, col_seg, bias_row,
     )  # fmt: skip
 
 

@@ -41,6 +41,7 @@ ONLINE_FIELDS_ADDED: Mapping[str, Any] = MappingProxyType(
         "policy_gradient": "surrogate",
         "time_limit": "bootstrap",
         "min_scale": 1e-3,
+        "head_tensors": "joint",
     }
 )
 """Online learner settings that a run folder may lack, with the value such a run ran with
