@@ -11,7 +11,7 @@ from reference_online import ReferenceLearner as OnlineLearner
 from pporpe.nn.batched import NetLayout, backward_row0, forward_chain
 from pporpe.online.config import V0_2_CHOICES, OnlineConfig
 from pporpe.online.noise import NoiseBank, polar_student_t
-from pporpe.online.population import PopulationLearner
+from pporpe.online.population import ENGINES, PopulationLearner
 
 torch.set_num_threads(1)
 
@@ -26,8 +26,15 @@ def cfg(**kw: object) -> OnlineConfig:
     return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
 
 
-def pop(configs: list[OnlineConfig], seeds: list[int], compile_update: bool = False):
-    return PopulationLearner(OBS, LOW, HIGH, configs, seeds, compile_update=compile_update)
+def pop(
+    configs: list[OnlineConfig],
+    seeds: list[int],
+    compile_update: bool = False,
+    engine: str = "torch",
+):
+    return PopulationLearner(
+        OBS, LOW, HIGH, configs, seeds, compile_update=compile_update, engine=engine
+    )
 
 
 def data(n: int, seed: int = 1, episode: int = 100) -> list[tuple[float, np.ndarray, bool, bool]]:
@@ -90,12 +97,13 @@ def test_layout_matches_mlp_module() -> None:
 
 
 # ------------------------------------------------------------------------------- (b)
-def test_member_equals_reference_online_learner() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_member_equals_reference_online_learner(engine: str) -> None:
     member = cfg(lr=1e-3)
     others = [cfg(method="ppo", lr=3e-3, kappa=0.0), cfg(method="rb", nu=float("inf"))]
     torch.manual_seed(5)
     ref = OnlineLearner(OBS, LOW, HIGH, member)
-    p = pop([others[0], member, others[1]], [1, 5, 2])
+    p = pop([others[0], member, others[1]], [1, 5, 2], engine=engine)
     rng = np.random.default_rng(0)
     forced = {"u": torch.zeros(1, ACT)}
 
@@ -121,7 +129,9 @@ def test_member_equals_reference_online_learner() -> None:
             ref.begin_episode(obs0)
             p.begin_episode([0, 1, 2], np.stack([obs0] * 3), forced_u=forced["u"].repeat(3, 1))
     # how far the parameters moved from their initial values, for scale
-    total = float((p.member_theta(1) - pop([member], [5]).member_theta(0)).abs().max())
+    total = float(
+        (p.member_theta(1) - pop([member], [5], engine=engine).member_theta(0)).abs().max()
+    )
     print(
         f"\nmax abs drift vs the scalar reference: step 1 {drift[0]:.2e}, "
         f"step 100 {drift[99]:.2e}, step 300 {drift[-1]:.2e}, max {max(drift):.2e}; "
@@ -146,9 +156,10 @@ def test_methods_differ_and_ratio_departs_from_one() -> None:
 
 
 # ------------------------------------------------------------------------------- (d)
-def test_non_finite_member_is_isolated() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_non_finite_member_is_isolated(engine: str) -> None:
     configs = [cfg(), cfg(method="ppo"), cfg(method="rb")]
-    a, b = pop(configs, [0, 1, 2]), pop(configs, [0, 1, 2])
+    a, b = pop(configs, [0, 1, 2], engine=engine), pop(configs, [0, 1, 2], engine=engine)
     obs = np.zeros((3, OBS), np.float32)
     a.begin_episode([0, 1, 2], obs)
     b.begin_episode([0, 1, 2], obs)
@@ -200,10 +211,13 @@ def test_learner_samples_follow_its_head() -> None:
 
 
 # ------------------------------------------------------------------------------- (f)
-def test_member_does_not_depend_on_slot_or_K() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_member_does_not_depend_on_slot_or_K(engine: str) -> None:
     member = cfg(lr=3e-3)
-    one = pop([member], [11])
-    four = pop([cfg(method="ppo"), cfg(lr=1e-2), member, cfg(method="rb")], [1, 2, 11, 3])
+    one = pop([member], [11], engine=engine)
+    four = pop(
+        [cfg(method="ppo"), cfg(lr=1e-2), member, cfg(method="rb")], [1, 2, 11, 3], engine=engine
+    )
     assert torch.equal(one.noise.buf[0], four.noise.buf[2])
     trans = data(60, episode=25)
     _, a1 = run_pop(one, trans, np.zeros(OBS, np.float32))
@@ -214,6 +228,8 @@ def test_member_does_not_depend_on_slot_or_K() -> None:
     assert one.noise.pos[0] == four.noise.pos[2]
     diff = float((one.member_theta(0) - four.member_theta(2)).abs().max())
     assert diff < 1e-5
+    if engine == "fused":  # one member's loop, the same code in every slot: bitwise
+        assert np.array_equal(acts1, acts4) and diff == 0.0
 
 
 # ------------------------------------------------------------------------------- (g)
@@ -226,8 +242,9 @@ def _member_snapshot(p: PopulationLearner, k: int) -> list[torch.Tensor]:
     ]  # fmt: skip
 
 
-def test_inactive_member_is_bitwise_unchanged() -> None:
-    p = pop([cfg(), cfg(method="ppo"), cfg(method="rb")], [0, 1, 2])
+@pytest.mark.parametrize("engine", ENGINES)
+def test_inactive_member_is_bitwise_unchanged(engine: str) -> None:
+    p = pop([cfg(), cfg(method="ppo"), cfg(method="rb")], [0, 1, 2], engine=engine)
     p.begin_episode([0, 1, 2], np.zeros((3, OBS), np.float32))
     z = np.zeros(3, bool)
     for r, o, _, _ in data(3):
@@ -243,13 +260,14 @@ def test_inactive_member_is_bitwise_unchanged() -> None:
     assert p.finite().all()
 
 
-def test_member_state_round_trip_continues_bitwise() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_member_state_round_trip_continues_bitwise(engine: str) -> None:
     configs = [cfg(), cfg(method="ppo", lr=1e-3), cfg(method="rb")]
-    a = pop(configs, [0, 1, 2])
+    a = pop(configs, [0, 1, 2], engine=engine)
     obs0 = np.zeros(OBS, np.float32)
     run_pop(a, data(20, episode=20), obs0)  # ends at an episode boundary
     state = a.member_state(1)
-    b = pop([cfg(method="rpe"), cfg(), cfg(lr=1e-2)], [7, 8, 9])
+    b = pop([cfg(method="rpe"), cfg(), cfg(lr=1e-2)], [7, 8, 9], engine=engine)
     b.load_member_state(1, configs[1], state)
     assert torch.equal(b.member_theta(1), a.member_theta(1))
     trans = data(30, seed=5, episode=15)
@@ -261,12 +279,13 @@ def test_member_state_round_trip_continues_bitwise() -> None:
 
 
 # ------------------------------------------------------------------------------- (h)
-def test_reset_member_equals_fresh_population() -> None:
-    p = pop([cfg(), cfg(method="ppo"), cfg(method="rb")], [0, 1, 2])
+@pytest.mark.parametrize("engine", ENGINES)
+def test_reset_member_equals_fresh_population(engine: str) -> None:
+    p = pop([cfg(), cfg(method="ppo"), cfg(method="rb")], [0, 1, 2], engine=engine)
     run_pop(p, data(10), np.zeros(OBS, np.float32))
     new = cfg(method="rpe", lr=2e-3, kappa=0.0)
     p.reset_member(1, new, 42)
-    fresh = pop([new], [42])
+    fresh = pop([new], [42], engine=engine)
     s1, s0 = _member_snapshot(p, 1), _member_snapshot(fresh, 0)
     assert all(torch.equal(x, y) for x, y in zip(s1, s0, strict=True))
     assert torch.equal(p.noise.buf[1], fresh.noise.buf[0])

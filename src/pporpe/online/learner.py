@@ -36,7 +36,9 @@ class OnlineLearner:
 
     Its initial parameters are those of :func:`pporpe.nn.mlp.mlp` after
     ``torch.manual_seed(seed)`` (the global RNG is left untouched), and its samples come
-    from its own generator seeded with ``seed``.
+    from its own generator seeded with ``seed``. ``engine``: None (``config.engine``),
+    ``"torch"`` or ``"fused"`` (:class:`~pporpe.online.population.PopulationLearner`; the
+    fused one is about 10x faster for one run).
     """
 
     def __init__(
@@ -46,10 +48,17 @@ class OnlineLearner:
         action_high: Any,
         config: OnlineConfig,
         seed: int = 0,
+        engine: str | None = None,
     ) -> None:
         self.config = config
         self.population = PopulationLearner(
-            obs_dim, action_low, action_high, [config], [seed], compile_update=config.compile
+            obs_dim,
+            action_low,
+            action_high,
+            [config],
+            [seed],
+            compile_update=config.compile,
+            engine=engine,
         )
         self.obs_dim, self.act_dim = obs_dim, self.population.act_dim
 

@@ -50,7 +50,7 @@ from ..nn.batched import NetLayout, backward_row0, forward_chain
 from ..nn.mlp import mlp
 from ..nn.policies import ActionMap, PolicyHead, StudentTHead, make_head
 from ..surrogates import surrogate_objective
-from .config import OnlineConfig
+from .config import ENGINES, OnlineConfig
 from .member_state import load_member_state, member_state, write_constants
 from .noise import NoiseBank, polar_normal, polar_student_t
 from .stats import StepStats
@@ -62,10 +62,12 @@ from .update import (
     update_target,
 )
 
-__all__ = ["SHARED_FIELDS", "PopulationLearner", "StepStats"]
+__all__ = ["ENGINES", "SHARED_FIELDS", "PopulationLearner", "StepStats"]
+
 
 SHARED_FIELDS: tuple[str, ...] = (
     "layers", "units", "layer_norm", "activation", "policy", "min_scale", "head_tensors",
+    "engine",
 )  # fmt: skip
 """Config fields every member must share (they fix the network shape and its head)."""
 
@@ -94,6 +96,11 @@ class PopulationLearner:
         compile_update: compile the elementwise update with ``torch.compile``.
         noise_block: steps of noise drawn at once per member.
         cache_bytes: working-set target of one block of the elementwise update.
+        engine: None (the members' ``OnlineConfig.engine``), ``"torch"`` (the reference:
+            batched torch operations, the elementwise update compiled with
+            ``torch.compile`` if ``compile_update``) or ``"fused"`` (one numba kernel per
+            step, :mod:`pporpe.online.fused`; ``compile_update`` and ``cache_bytes`` are
+            ignored). The two agree to float rounding.
     """
 
     def __init__(
@@ -106,7 +113,14 @@ class PopulationLearner:
         compile_update: bool = True,
         noise_block: int = 1024,
         cache_bytes: int = 4 * 2**20,
+        engine: str | None = None,
     ) -> None:
+        if engine is None:  # the members' own choice (they share it: SHARED_FIELDS)
+            engine = getattr(next(iter(configs), None), "engine", "torch")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {list(ENGINES)}; got engine={engine!r}")
+        self.engine = engine
+        self._fused: Any = None
         if not (isinstance(obs_dim, int) and obs_dim >= 1):
             raise ValueError(f"obs_dim must be an int >= 1; got obs_dim={obs_dim!r}")
         configs, seeds = list(configs), list(seeds)
@@ -184,6 +198,11 @@ class PopulationLearner:
         self._raw_b = torch.zeros(K, self.head.raw_dim)  # pi_b's raw output at s_t
         self._pending = np.zeros(K, dtype=bool)
         self._row_seg = lay.row_seg
+        if engine == "fused":
+            from .fused_engine import FusedEngine
+
+            self._fused = FusedEngine(self)
+            compile_update = False
         self._upd: Callable[..., Tensor] = update_chunk
         self._tgt: Callable[..., None] = update_target
         if compile_update:
@@ -225,6 +244,8 @@ class PopulationLearner:
         self._check_shape(cfg)
         self.configs[k] = cfg
         write_constants(self, k, cfg)
+        if self._fused is not None:
+            self._fused.set_constants(self, k, cfg)
         groups: dict[tuple[Any, ...], list[int]] = {}
         for i, cf in enumerate(self.configs):
             key = (cf.method, cf.eps, cf.beta, cf.eta, cf.rpe_form)
@@ -315,6 +336,10 @@ class PopulationLearner:
     @torch.no_grad()
     def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
         """Test-time actions ``[K, act_dim]``: each member's location mapped into the bounds."""
+        if self._fused is not None:
+            obs2 = np.asarray(obs, np.float32).reshape(self.K, self.obs_dim)
+            raw_np = self._fused.forward(0, obs2, self.lay.raw_dim)
+            return self.action_map.to_action(self.head.location(torch.from_numpy(raw_np))).numpy()
         x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)
         raw, _ = forward_chain(self._flat(1), x, self.lay, self.activation)
         return self.action_map.to_action(self.head.location(raw[:, 0])).numpy()
@@ -329,6 +354,9 @@ class PopulationLearner:
     @torch.no_grad()
     def value(self, obs: np.ndarray) -> np.ndarray:
         """V(s) of every member's online value network, ``[K]``."""
+        if self._fused is not None:
+            obs2 = np.asarray(obs, np.float32).reshape(self.K, self.obs_dim)
+            return self._fused.forward(1, obs2, 1)[:, 0]
         x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)
         values = self.P[1].view(self.K, self.lay.n_pad)
         out, _ = forward_chain(values, x, self.lay, self.activation)
@@ -349,6 +377,8 @@ class PopulationLearner:
         idx = _as_index(members, self.K)
         ti = torch.from_numpy(idx)
         K = self.K
+        if self._fused is not None:
+            return self._begin_fused(idx, ti, obs, forced_u)
         x = self._obs.clone()
         x[ti] = torch.as_tensor(np.asarray(obs, np.float32)).reshape(len(idx), self.obs_dim)
         xx = x.unsqueeze(1).repeat(2, 1, 1)
@@ -418,6 +448,8 @@ class PopulationLearner:
         if not self._pending[act_np].all():
             missing = np.nonzero(act_np & ~self._pending)[0].tolist()
             raise RuntimeError(f"call begin_episode for members {missing} before step()")
+        if self._fused is not None:
+            return self._step_fused(reward, next_obs, terminated, truncated, act_np, forced_u)
         term_np = np.asarray(terminated, dtype=bool).reshape(K)
         trunc_np = np.asarray(truncated, dtype=bool).reshape(K)
         done_np = term_np | trunc_np
@@ -522,6 +554,51 @@ class PopulationLearner:
         self._raw_b = torch.where(cont.view(K, 1), raw1.detach(), self._raw_b)
         self._pending &= ~(act_np & done_np)
         return stats, self.action_map.to_action(u_next).numpy()
+
+    # -- the fused engine ---------------------------------------------------------------
+    def _begin_fused(
+        self, idx: np.ndarray, ti: Tensor, obs: np.ndarray, forced_u: Tensor | None
+    ) -> np.ndarray:
+        """begin_episode of the fused engine (the same rules, one kernel call)."""
+        x = np.asarray(obs, np.float32).reshape(len(idx), self.obs_dim)
+        pts = None
+        if forced_u is None:
+            mask = np.zeros(self.K, dtype=bool)
+            mask[idx] = True
+            pts = self.noise.take(mask).numpy()
+        forced = None if forced_u is None else np.asarray(forced_u, np.float32)
+        for buf in (self.e, self.r):
+            buf[:, ti] = 0.0
+        self.D[ti], self.decay[ti] = 0.0, 1.0
+        return self._fused.begin(idx, x, self._no_points() if pts is None else pts, forced)
+
+    def _no_points(self) -> np.ndarray:
+        return np.full((self.K, self.act_dim, 2), 0.5)
+
+    def _step_fused(
+        self,
+        reward: np.ndarray,
+        next_obs: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        act_np: np.ndarray,
+        forced_u: Tensor | None,
+    ) -> tuple[StepStats, np.ndarray]:
+        """step() of the fused engine: noise drawn here, everything else in the kernel."""
+        K = self.K
+        pts = self._no_points() if forced_u is not None else self.noise.take(act_np).numpy()
+        forced = None if forced_u is None else np.asarray(forced_u, np.float32).reshape(K, -1)
+        stats, actions = self._fused.step(
+            np.asarray(reward, np.float32).reshape(K),
+            np.asarray(next_obs, np.float32).reshape(K, self.obs_dim),
+            np.asarray(terminated, dtype=bool).reshape(K),
+            np.asarray(truncated, dtype=bool).reshape(K),
+            act_np,
+            pts,
+            forced,
+        )
+        s = torch.from_numpy(stats)
+        return StepStats(s[0], s[1], s[2], s[3], s[4]), actions
 
     # -- state ----------------------------------------------------------------------------
     def member_state(self, k: int) -> dict[str, Any]:

@@ -42,6 +42,7 @@ ONLINE_FIELDS_ADDED: Mapping[str, Any] = MappingProxyType(
         "time_limit": "bootstrap",
         "min_scale": 1e-3,
         "head_tensors": "joint",
+        "engine": "torch",
     }
 )
 """Online learner settings that a run folder may lack, with the value such a run ran with

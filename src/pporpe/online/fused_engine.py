@@ -1,0 +1,146 @@
+"""The Python side of the fused engine: numpy views of a population's buffers, the
+per-member constants as matrices, and the calls of the kernels of :mod:`.fused`."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import fused
+from .config import OnlineConfig
+
+if TYPE_CHECKING:
+    from .population import PopulationLearner
+
+__all__ = ["FusedEngine"]
+
+
+def _np(t: Tensor, *shape: int) -> np.ndarray:
+    """A numpy view (shared memory) of a contiguous CPU tensor, reshaped."""
+    arr = t.numpy()
+    return arr.reshape(shape) if shape else arr
+
+
+class FusedEngine:
+    """Numpy views of ``pop``'s buffers and the layout, for :func:`fused.fused_step`."""
+
+    def __init__(self, pop: PopulationLearner) -> None:
+        lay, K = pop.lay, pop.K
+        if lay.col_seg is not None:  # its t-momentum takes one segment per tensor slot
+            raise ValueError(
+                "head_tensors='per_output' is not supported by engine='fused' yet; "
+                "use engine='torch' (the default)"
+            )
+        units, n_pad = lay.units, lay.n_pad
+        g_ = [-1 if h[2] is None else h[2].offset for h in lay.hidden]
+        be_ = [-1 if h[3] is None else h[3].offset for h in lay.hidden]
+        self.lay = np.array(
+            [
+                [h[0].offset, h[1].offset, g_[i], be_[i], h[0].shape[1]]
+                for i, h in enumerate(lay.hidden)
+            ],
+            dtype=np.int64,
+        )
+        geo = [0] * 10
+        geo[fused.G_OBS], geo[fused.G_UNITS], geo[fused.G_RAW] = lay.obs_dim, units, lay.raw_dim
+        geo[fused.G_OUT_W], geo[fused.G_OUT_B] = lay.out_w.offset, lay.out_b.offset
+        geo[fused.G_LN], geo[fused.G_ACT] = int(lay.layer_norm), fused.ACTIVATIONS[pop.activation]
+        geo[fused.G_HEAD] = fused.HEADS[pop.shape_config.policy]
+        geo[fused.G_ACT_DIM], geo[fused.G_LAYERS] = pop.act_dim, lay.layers
+        self.geo = np.array(geo, dtype=np.int64)
+        self.seg = np.array([[s.offset // units, s.rows] for s in lay.slots], dtype=np.int64)
+        self.hf = np.array([pop.head.min_scale, float(lay.n_real[1])])
+        am = pop.action_map
+        self.bounds = torch.stack([am.low, am.high, am.log_range]).numpy().astype(np.float32)
+        self.P = _np(pop.P, 3, K, n_pad)
+        self.opt = (
+            *(_np(x, 2, K, n_pad) for x in (pop.e, pop.r, pop.v, pop.vmax_s, pop.m)),
+            _np(pop.W_opt), _np(pop.num), _np(pop.den),
+        )  # fmt: skip
+        self.sc = (_np(pop.D), _np(pop.decay), _np(pop.ts_W), _np(pop.ts_sigma2), pop.steps)
+        self.pend = (
+            _np(pop._obs), _np(pop._u), _np(pop._logp_b), _np(pop._value_b), _np(pop._raw_b),
+            pop._pending,
+        )  # fmt: skip
+        self.cf = np.zeros((K, len(fused.C_NAMES)))
+        self.fl = np.zeros((K, len(fused.F_NAMES)), dtype=np.int64)
+        width = max(lay.obs_dim, units)
+        max_seg = max(s.rows for s in lay.slots) * units
+        self.scratch = (
+            np.zeros((2, n_pad), np.float32),
+            np.zeros(max_seg, np.float32),
+            np.zeros((2, lay.layers + 1, 3, width), np.float32),
+            np.zeros((2, lay.layers), np.float32),
+            np.zeros((0, 3, width), np.float32),
+            np.zeros(0, np.float32),
+        )
+        self.stats = np.zeros((5, K), np.float32)
+        self.actions = np.zeros((K, pop.act_dim), np.float32)
+        self._no_forced = np.zeros((K, pop.act_dim), np.float32)
+
+    def set_constants(self, pop: PopulationLearner, k: int, cfg: OnlineConfig) -> None:
+        """Member k's rows of the constants matrices, from what write_constants wrote."""
+        c, c64, b, nps = pop._c, pop._c64, pop._b, pop._np
+        values = {n: float(c[n][k]) for n in c}
+        values.update({n: float(c64[n][k]) for n in c64})
+        values.update({n: float(nps[n][k]) for n in ("beta1", "beta2", "lr", "ams_decay")})
+        values["beta2_f32"] = float(c["beta2"][k])
+        values.update(eps=cfg.eps, beta=cfg.beta, eta=cfg.eta)
+        self.cf[k] = [values[n] for n in fused.C_NAMES]
+        flags = {n: int(bool(b[n][k])) for n in b}
+        flags["ams_raw"] = int(nps["ams_raw"][k] > 0)
+        flags["method"] = fused.METHOD_CODES[(cfg.method, cfg.rpe_form)]
+        self.fl[k] = [flags[n] for n in fused.F_NAMES]
+
+    def step(
+        self,
+        reward: np.ndarray,
+        next_obs: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        active: np.ndarray,
+        points: np.ndarray,
+        forced_u: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Run the kernel; return the stats ``[5, K]`` and the actions ``[K, d]`` (copies)."""
+        inp = (
+            np.ascontiguousarray(reward, np.float32),
+            np.ascontiguousarray(next_obs, np.float32),
+            np.ascontiguousarray(terminated, np.bool_),
+            np.ascontiguousarray(truncated, np.bool_),
+            np.ascontiguousarray(active, np.bool_),
+            points,
+            self._no_forced if forced_u is None else np.ascontiguousarray(forced_u, np.float32),
+            forced_u is not None,
+        )
+        fused.fused_step(
+            self.P, self.opt, self.sc, self.pend, inp, self.cf, self.fl, self.geo, self.lay,
+            self.seg, self.hf, self.bounds, (self.stats, self.actions), self.scratch,
+        )  # fmt: skip
+        return self.stats.copy(), self.actions.copy()
+
+    def begin(
+        self, idx: np.ndarray, obs: np.ndarray, points: np.ndarray, forced_u: np.ndarray | None
+    ) -> np.ndarray:
+        """First actions ``[len(idx), d]`` of members ``idx`` (sets their pending state)."""
+        n = len(idx)
+        actions = np.zeros((n, self.actions.shape[1]), np.float32)
+        forced = (
+            self._no_forced[:n] if forced_u is None else np.ascontiguousarray(forced_u, np.float32)
+        )
+        fused.fused_begin(
+            self.P, np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(obs, np.float32),
+            points, forced, forced_u is not None, self.geo, self.lay, self.hf, self.bounds,
+            self.pend, actions, self.scratch,
+        )  # fmt: skip
+        return actions
+
+    def forward(self, kind: int, obs: np.ndarray, n_out: int) -> np.ndarray:
+        """Outputs ``[K, n_out]`` of net ``kind`` (0 policy, 1 value) at ``obs [K, obs]``."""
+        out = np.zeros((self.P.shape[1], n_out), np.float32)
+        x = np.ascontiguousarray(obs, np.float32)
+        fused.fused_forward(self.P, kind, x, self.geo, self.lay, out, self.scratch)
+        return out
