@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from .policy import Policy
     from .runs import RunResult, load_policy, train
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 _LAZY = {
     "OnlineConfig": "pporpe.online",
