@@ -1,10 +1,10 @@
 """Ablation of the learner choices where pporpe 0.2 and the author's test bed differ.
 
-Each *variant* is the baseline (pporpe 0.2's choices, ``V0_2_CHOICES``) with one change,
+Each *variant* is the baseline (pporpe 0.2's choices, ``BASELINE_CHOICES``) with one change,
 or all changes together (``AUTHOR_CHOICES``, pporpe 0.3's defaults), or all but the
 entropy density (``all_but_entropy``), or any combination of the changes named with ``+``
 (``amsgrad+td_units``: pporpe 0.2's choices with those two changes;
-``td_units+amsgrad+layer_norm+trace_kl`` is ``V0_4_CHOICES``, pporpe's defaults since
+``td_units+amsgrad+layer_norm+trace_kl`` is ``DEFAULT_CHOICES``, pporpe's defaults since
 0.4). Two more changes, ``weights`` and ``lr_width`` (:data:`TESTBED`), are the test bed's
 values where the paper states others, for diagnosis only; they run in combinations, not
 alone (``td_units+amsgrad+layer_norm+trace_kl+weights``: the defaults with the test bed's
@@ -59,7 +59,7 @@ from pporpe.experiments.stats import (
     probability_of_improvement_ci,
 )
 from pporpe.io import atomic_write_text
-from pporpe.online.config import AUTHOR_CHOICES, TESTBED_WEIGHTS, V0_2_CHOICES, V0_4_CHOICES
+from pporpe.online.config import AUTHOR_CHOICES, BASELINE_CHOICES, DEFAULT_CHOICES, TESTBED_WEIGHTS
 from pporpe.runs.logger import read_records
 
 AUTHOR: dict[str, dict[str, Any]] = {
@@ -88,11 +88,11 @@ CHANGES: dict[str, dict[str, Any]] = {**AUTHOR, **TESTBED}
 
 def combined(names: Any) -> dict[str, Any]:
     """pporpe 0.2's choices with the named changes of :data:`CHANGES` on top."""
-    return {**V0_2_CHOICES, **{k: v for name in names for k, v in CHANGES[name].items()}}
+    return {**BASELINE_CHOICES, **{k: v for name in names for k, v in CHANGES[name].items()}}
 
 
 VARIANTS: dict[str, dict[str, Any]] = {
-    "baseline": dict(V0_2_CHOICES),
+    "baseline": dict(BASELINE_CHOICES),
     **{name: combined([name]) for name in AUTHOR},
     "all": combined(AUTHOR),
     "all_but_entropy": combined(name for name in AUTHOR if name != "entropy"),
@@ -104,8 +104,8 @@ makes Swingup worse (docs/online-learner.md)."""
 assert VARIANTS["all"] == dict(AUTHOR_CHOICES)
 
 DEFAULTS = "td_units+amsgrad+layer_norm+trace_kl"
-"""pporpe's defaults since 0.4 (``V0_4_CHOICES``), as a variant name."""
-assert combined(DEFAULTS.split("+")) == dict(V0_4_CHOICES)
+"""pporpe's defaults since 0.4 (``DEFAULT_CHOICES``), as a variant name."""
+assert combined(DEFAULTS.split("+")) == dict(DEFAULT_CHOICES)
 
 REFERENCES = ("baseline", "all", "amsgrad", DEFAULTS)
 """The variants every other is compared with by default (``--versus``): pporpe 0.2's
@@ -421,7 +421,7 @@ def main() -> None:
         for variant in args.variants:
             spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
             settings = variant_settings(variant)
-            changed = {k: v for k, v in settings.items() if V0_2_CHOICES.get(k) != v}
+            changed = {k: v for k, v in settings.items() if BASELINE_CHOICES.get(k) != v}
             print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
             outcome = reproduce(spec, out / variant, workers=args.workers)
             print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "

@@ -15,13 +15,13 @@ from torch.distributions import Normal, kl_divergence
 from pporpe.advantages import regularized_advantage, td_error
 from pporpe.nn.batched import forward_chain
 from pporpe.nn.policies import NormalHead, StudentTHead
-from pporpe.online.config import TESTBED_WEIGHTS, V0_2_CHOICES, OnlineConfig
+from pporpe.online.config import BASELINE_CHOICES, TESTBED_WEIGHTS, OnlineConfig
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import surrogate_objective
 
 # pporpe 0.2's learner choices pinned: the reference learner implements them, and each
 # choice's test compares it against them.
-SMALL = {"layers": 2, "units": 16, "compile": False, **V0_2_CHOICES}
+SMALL = {"layers": 2, "units": 16, "compile": False, **BASELINE_CHOICES}
 OBS, ACT = 3, 2
 
 
@@ -269,20 +269,20 @@ def test_bad_choice_is_refused_by_name(field: str, value: object) -> None:
 
 def test_defaults_are_the_authors_choices_but_the_two_the_ablation_rejected() -> None:
     """pporpe 0.4's defaults are the author's test-bed choices except the critic signal
-    and the entropy density (V0_4_CHOICES); AUTHOR_CHOICES is pporpe 0.3's learner and
-    V0_2_CHOICES pporpe 0.2's, each differing from the defaults where it should."""
-    from pporpe.online.config import AUTHOR_CHOICES, V0_4_CHOICES
+    and the entropy density (DEFAULT_CHOICES); AUTHOR_CHOICES is pporpe 0.3's learner and
+    BASELINE_CHOICES pporpe 0.2's, each differing from the defaults where it should."""
+    from pporpe.online.config import AUTHOR_CHOICES, DEFAULT_CHOICES
 
-    assert set(AUTHOR_CHOICES) == set(V0_2_CHOICES) == set(V0_4_CHOICES)
+    assert set(AUTHOR_CHOICES) == set(BASELINE_CHOICES) == set(DEFAULT_CHOICES)
     default = OnlineConfig()
-    assert {k: getattr(default, k) for k in V0_4_CHOICES} == dict(V0_4_CHOICES)
+    assert {k: getattr(default, k) for k in DEFAULT_CHOICES} == dict(DEFAULT_CHOICES)
     assert (default.critic_signal, default.entropy_density) == ("td", "action")
     author = OnlineConfig(**AUTHOR_CHOICES)  # type: ignore[arg-type]
     differs = {k for k in AUTHOR_CHOICES if getattr(author, k) != getattr(default, k)}
     assert differs == {"critic_signal", "entropy_density"}
-    old = OnlineConfig(**V0_2_CHOICES)  # type: ignore[arg-type]
-    differs = {k for k in V0_2_CHOICES if getattr(old, k) != getattr(default, k)}
-    assert differs == set(V0_2_CHOICES) - {"critic_signal", "entropy_density"}
+    old = OnlineConfig(**BASELINE_CHOICES)  # type: ignore[arg-type]
+    differs = {k for k in BASELINE_CHOICES if getattr(old, k) != getattr(default, k)}
+    assert differs == set(BASELINE_CHOICES) - {"critic_signal", "entropy_density"}
 
 
 def test_run_folders_written_before_the_choices_existed_keep_what_they_ran_with(
@@ -297,12 +297,12 @@ def test_run_folders_written_before_the_choices_existed_keep_what_they_ran_with(
     fixture = Path(__file__).parent / "fixtures" / "run_v0_1_online" / "config.json"
     data = json.loads(fixture.read_text())
     # The fixture predates the six choice fields (amsgrad_decay existed: 0.999).
-    assert set(V0_2_CHOICES) & set(data["learner"]) == {"amsgrad_decay"}
+    assert set(BASELINE_CHOICES) & set(data["learner"]) == {"amsgrad_decay"}
     assert data["learner"]["amsgrad_decay"] == 0.999
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "config.json").write_text(json.dumps(data))
     _, cfg = read_config(tmp_path / "old")
-    assert {k: getattr(cfg.learner, k) for k in V0_2_CHOICES} == dict(V0_2_CHOICES)
+    assert {k: getattr(cfg.learner, k) for k in BASELINE_CHOICES} == dict(BASELINE_CHOICES)
     data["learner"]["critic_signal"] = "actor"  # written explicitly: kept
     (tmp_path / "old" / "config.json").write_text(json.dumps(data))
     _, cfg = read_config(tmp_path / "old")

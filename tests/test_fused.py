@@ -11,7 +11,7 @@ import torch
 
 from pporpe.nn.policies import NormalHead, StudentTHead
 from pporpe.online import fused
-from pporpe.online.config import AUTHOR_CHOICES, V0_2_CHOICES, OnlineConfig
+from pporpe.online.config import AUTHOR_CHOICES, BASELINE_CHOICES, OnlineConfig
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import rpe_surrogate_advantage, surrogate_objective
 
@@ -137,7 +137,7 @@ def test_surrogate_derivative_identities() -> None:
 MIXED = [
     cfg(),  # today's defaults
     cfg(**AUTHOR_CHOICES, method="ppo"),
-    cfg(**V0_2_CHOICES, method="rb"),
+    cfg(**BASELINE_CHOICES, method="rb"),
     cfg(method="rpe", rpe_form="printed", kappa=0.0, nu=float("inf"), k_dof=float("inf")),
     cfg(method="ppo", policy_gradient="weighted_score", time_limit="terminal", tau=1.0,
         lambdas=(0.5, 0.9), kappa=1.0, amsgrad_decay=0.0),

@@ -13,12 +13,12 @@ import torch
 
 from pporpe.nn.mlp import FlatMLP, flat_views, mlp
 from pporpe.online import OnlineLearner, StepStats
-from pporpe.online.config import V0_2_CHOICES, OnlineConfig, TrainConfig
+from pporpe.online.config import BASELINE_CHOICES, OnlineConfig, TrainConfig
 from pporpe.surrogates import surrogate_objective
 
 # pporpe 0.2's learner choices pinned: these hand-worked cases are written for them; the
 # author's choices (the defaults) are tested one by one in test_fidelity_choices.py.
-SMALL = dict(layers=2, units=16, compile=False, **V0_2_CHOICES)
+SMALL = dict(layers=2, units=16, compile=False, **BASELINE_CHOICES)
 
 
 def make(method: str, seed: int = 0, **kw: object) -> OnlineLearner:

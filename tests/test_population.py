@@ -9,7 +9,7 @@ import torch
 from reference_online import ReferenceLearner as OnlineLearner
 
 from pporpe.nn.batched import NetLayout, backward_row0, forward_chain
-from pporpe.online.config import V0_2_CHOICES, OnlineConfig
+from pporpe.online.config import BASELINE_CHOICES, OnlineConfig
 from pporpe.online.noise import NoiseBank, polar_student_t
 from pporpe.online.population import ENGINES, PopulationLearner
 
@@ -17,7 +17,7 @@ torch.set_num_threads(1)
 
 # pporpe 0.2's learner choices pinned: the reference learner implements them, and each
 # choice's test compares it against them.
-SMALL = {"layers": 2, "units": 16, "compile": False, **V0_2_CHOICES}
+SMALL = {"layers": 2, "units": 16, "compile": False, **BASELINE_CHOICES}
 OBS, ACT = 3, 2
 LOW, HIGH = -np.ones(ACT), np.ones(ACT)
 

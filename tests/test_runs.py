@@ -172,7 +172,9 @@ def test_unfinished_version_0_1_online_folder_is_refused_with_a_reason(tmp_path:
     shutil.copytree(FIXTURES / "run_v0_1_online", run)
     (run / "done.json").unlink()
     before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
-    with pytest.raises(ValueError, match=r"started by pporpe 0\.1\.0.*pporpe evaluate"):
+    with pytest.raises(
+        ValueError, match=r"started by pporpe.s first release \(0\.1\.0\).*pporpe evaluate"
+    ):
         train(fixture_config("online"), run, progress=False)
     after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
     assert after == before

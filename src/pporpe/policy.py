@@ -1,7 +1,7 @@
 """A trained policy, ready to act in a user's own code: :class:`Policy`.
 
 :func:`pporpe.load_policy` returns one for any run folder (the online learner, batch PPO,
-folders of pporpe 0.1.0)::
+folders of every earlier version: :mod:`pporpe.runs.migrate`)::
 
     policy = pporpe.load_policy("runs/x")
     action = policy.act(obs)                           # the policy's location, bounded

@@ -10,9 +10,9 @@ streams :mod:`.noise`); :class:`OnlineLearner` is one member with scalar inputs.
 
 from .config import (
     AUTHOR_CHOICES,
+    BASELINE_CHOICES,
+    DEFAULT_CHOICES,
     TESTBED_WEIGHTS,
-    V0_2_CHOICES,
-    V0_4_CHOICES,
     OnlineConfig,
     TrainConfig,
 )
@@ -25,9 +25,9 @@ from .tsoft import TSoftUpdate
 
 __all__ = [
     "AUTHOR_CHOICES",
+    "BASELINE_CHOICES",
+    "DEFAULT_CHOICES",
     "TESTBED_WEIGHTS",
-    "V0_2_CHOICES",
-    "V0_4_CHOICES",
     "AdaptiveTraces",
     "OnlineConfig",
     "OnlineLearner",

@@ -24,7 +24,9 @@ from ..config import (
 __all__ = [
     "AMSGRAD_MAXES",
     "AUTHOR_CHOICES",
+    "BASELINE_CHOICES",
     "CRITIC_SIGNALS",
+    "DEFAULT_CHOICES",
     "ENGINES",
     "ENTROPY_DENSITIES",
     "HEAD_TENSORS",
@@ -34,8 +36,6 @@ __all__ = [
     "TESTBED_WEIGHTS",
     "TIME_LIMITS",
     "TRACE_DIVERGENCES",
-    "V0_2_CHOICES",
-    "V0_4_CHOICES",
     "OnlineConfig",
     "TrainConfig",
 ]
@@ -71,11 +71,11 @@ AUTHOR_CHOICES: Mapping[str, Any] = MappingProxyType(
         "trace_divergence": "analytic",
     }
 )
-"""The choices where the paper is silent, as the author's test bed makes them: pporpe
-0.3's defaults (``OnlineConfig(**AUTHOR_CHOICES)``), and the settings of the committed
-reproduction of the paper (experiments/paper.toml, results/paper)."""
+"""The choices where the paper is silent, as the author's test bed makes them
+(``OnlineConfig(**AUTHOR_CHOICES)``): the settings of the committed reproduction of the
+paper (experiments/paper.toml, results/paper) and the ablation's ``all`` variant."""
 
-V0_2_CHOICES: Mapping[str, Any] = MappingProxyType(
+BASELINE_CHOICES: Mapping[str, Any] = MappingProxyType(
     {
         "critic_signal": "td",
         "td_units": "scaled",
@@ -86,17 +86,19 @@ V0_2_CHOICES: Mapping[str, Any] = MappingProxyType(
         "trace_divergence": "sample",
     }
 )
-"""The same fields as pporpe 0.2 set them (``OnlineConfig(**V0_2_CHOICES)``); also what a
-run folder written before these fields existed ran with."""
+"""The same fields as pporpe's first learner set them, before the author's test bed was read
+(``OnlineConfig(**BASELINE_CHOICES)``): the ablation's ``baseline`` variant, against which
+each of the author's choices was measured (docs/online-learner.md). What a run folder
+written before these fields existed ran with is fixed in :mod:`pporpe.runs.migrate`."""
 
-V0_4_CHOICES: Mapping[str, Any] = MappingProxyType(
+DEFAULT_CHOICES: Mapping[str, Any] = MappingProxyType(
     {
         **AUTHOR_CHOICES,
-        "critic_signal": V0_2_CHOICES["critic_signal"],
-        "entropy_density": V0_2_CHOICES["entropy_density"],
+        "critic_signal": BASELINE_CHOICES["critic_signal"],
+        "entropy_density": BASELINE_CHOICES["entropy_density"],
     }
 )
-"""pporpe's defaults since 0.4: the author's choices but two, the critic trained with the
+"""pporpe's defaults: the author's choices but two, the critic trained with the
 TD error (``critic_signal="td"``) and the entropy bonus of the bounded action
 (``entropy_density="action"``), each of which made the learner worse in the ablation
 (benchmarks/ablation.py, docs/online-learner.md)."""
@@ -164,11 +166,12 @@ the random streams) are listed in docs/testbed.md."""
 class OnlineConfig:
     """Settings of the paper's online actor-critic learner (Algorithm 1, Table I).
 
-    Defaults are the paper's. Where the paper is silent, they are :data:`V0_4_CHOICES`:
+    Defaults are the paper's. Where the paper is silent, they are :data:`DEFAULT_CHOICES`:
     the author's public test bed (:data:`AUTHOR_CHOICES`) except for the two choices the
     ablation measured to make the learner worse (docs/online-learner.md).
-    ``OnlineConfig(**AUTHOR_CHOICES)`` is pporpe 0.3's learner and
-    ``OnlineConfig(**V0_2_CHOICES)`` pporpe 0.2's.
+    ``OnlineConfig(**AUTHOR_CHOICES)`` takes all of the author's choices,
+    ``OnlineConfig(**BASELINE_CHOICES)`` none, ``OnlineConfig(**TESTBED)`` is the author's
+    test bed's learner. The history of the defaults is in CHANGELOG.md.
     Optimiser constants the paper leaves at "default" are documented in
     :class:`pporpe.online.optim.TDAmsProp`.
     """
@@ -195,11 +198,11 @@ class OnlineConfig:
     """t-momentum degrees of freedom per parameter, > 0 (``inf`` gives LaProp)."""
     amsgrad_decay: float = 0.99999
     """Decay of the AMSGrad running maximum, in [0, 1] (1 = AMSGrad, 0 = none): 0.99999 as
-    the author's optimiser (pporpe 0.2: 0.999)."""
+    the author's optimiser."""
     amsgrad_max: AmsgradMax = "raw"
     """td-AmsProp's running maximum: over the raw second moment, bias-corrected after
     (``"raw"``, the author's optimiser, default) or over the bias-corrected one
-    (``"bias_corrected"``, pporpe 0.2)."""
+    (``"bias_corrected"``)."""
     tau: float = 0.3
     """t-soft target update rate tau, in (0, 1]."""
     nu: float = 1.0
@@ -214,25 +217,25 @@ class OnlineConfig:
     """Gain beta_DE >= 0 of entropy regularisation (SAC-style)."""
     td_units: TDUnits = "unscaled"
     """Units of delta in the TD regulariser: ``"unscaled"`` (default, as the author's test
-    bed), beta_TD * (delta / (1 - gamma))^2, or ``"scaled"`` (pporpe 0.2), beta_TD *
+    bed), beta_TD * (delta / (1 - gamma))^2, or ``"scaled"``, beta_TD *
     delta^2 with delta in scaled-reward units, 1 / (1 - gamma)^2 = 10^4 times weaker at
     gamma = 0.99."""
     entropy_density: EntropyDensity = "action"
     """Log-density in the entropy regulariser: of the bounded action, the map's Jacobian
-    included (``"action"``, default, as pporpe 0.2), or of the pre-map variable u
-    (``"pre_squash"``, the author's test bed and pporpe 0.3: its bonus does not penalise
+    included (``"action"``, default), or of the pre-map variable u
+    (``"pre_squash"``, the author's test bed: its bonus does not penalise
     a location in the map's saturated tails, and on Swingup its policies drive the cart
     at the action bounds)."""
     critic_signal: CriticSignal = "td"
-    """What trains the value network: the TD error (``"td"``, default, as pporpe 0.2:
-    delta * grad V), or the actor's signal and weight (``"actor"``, the author's test bed
-    and pporpe 0.3: A * rho_dagger * grad V with rho_dagger = obj(rho, A) / A detached,
+    """What trains the value network: the TD error (``"td"``, default:
+    delta * grad V), or the actor's signal and weight (``"actor"``, the author's test bed:
+    A * rho_dagger * grad V with rho_dagger = obj(rho, A) / A detached,
     the surrogate's effective ratio; the test bed trains both networks with
     -A * rho_w * (V + log pi))."""
     trace_divergence: TraceDivergence = "analytic"
     """Divergence that cuts the adaptive traces: ``"analytic"`` (default, as the author's
     test bed), KL(pi || pi_b) between the two policies at s_t (a normal-gamma
-    approximation for the student-t) + (V - V_b)^2 / 2, or ``"sample"`` (pporpe 0.2),
+    approximation for the student-t) + (V - V_b)^2 / 2, or ``"sample"``,
     (rho - 1 - log rho) + (V - V_b)^2 at the sampled action."""
     policy_gradient: PolicyGradient = "surrogate"
     """How the surrogate enters the actor's gradient: the gradient of the surrogate
@@ -255,7 +258,7 @@ class OnlineConfig:
     layer_norm: bool = True
     """LayerNorm after each hidden linear layer."""
     layer_norm_affine: bool = False
-    """Learn LayerNorm's scale and shift (True, pporpe 0.2), or keep them at 1 and 0
+    """Learn LayerNorm's scale and shift (True), or keep them at 1 and 0
     (False, default), as the author's networks, which have none."""
     activation: Activation = "swish"
     """Hidden activation: ``"swish"`` (x*sigmoid(x)), ``"relu"`` or ``"tanh"``."""

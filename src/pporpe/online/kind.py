@@ -292,7 +292,7 @@ class OnlineKind:
         return (cfg.env, *(getattr(lc, name) for name in SHARED_FIELDS), lc.compile)
 
     def load_policy(self, cfg: TrainConfig, state: dict[str, Any]) -> Policy:
-        """The trained policy of a checkpoint (also of pporpe 0.1.0's)."""
+        """The trained policy of a checkpoint (also of the first release's, a flat theta)."""
         learner = _single_learner(cfg)
         member = state["learner"]
         if "params" in member:

@@ -508,7 +508,7 @@ def load_policy(run_dir: str | Path) -> Policy:
     """The trained policy of a run folder, from its ``config.json`` and latest checkpoint.
 
     Works for every learner kind (the online learner, batch PPO with its observation
-    normalisation) and for folders written by pporpe 0.1.0. The result acts with
+    normalisation) and for folders of earlier versions (:mod:`.migrate`). The result acts with
     ``policy.act(obs, deterministic=True)`` (or ``policy(obs)``) and carries the run's
     configuration as ``policy.config``::
 

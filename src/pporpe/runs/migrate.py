@@ -80,7 +80,7 @@ def check_online_resumable(member: Mapping[str, Any]) -> None:
     """Refuse to continue an online checkpoint of 0.1.0 (a flat ``theta``, no stream)."""
     if "params" not in member:
         raise ValueError(
-            "this run was started by pporpe 0.1.0, whose online learner sampled from "
+            "this run was started by pporpe's first release (0.1.0), which sampled from "
             "torch's global random stream; it cannot be continued exactly. Its policy "
             "still evaluates (pporpe evaluate); train it again in a new folder"
         )
