@@ -1,7 +1,8 @@
 # pporpe: two commands on a fresh machine.
 #   make reproduce   the main job: the quick grid + report (installs into .venv first)
-#   make test        lint, type-check and the test suite (installs what it needs first,
-#                    with the optional extras it tests: Ray, Stable-Baselines3, video)
+#   make test        lint, type-check, the docs site and the test suite (installs what it
+#                    needs first, with the optional extras it tests: Ray, SB3, video, docs)
+#   make docs        the documentation site into docs/_build/html (warnings are errors)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
 
 PYTHON ?= python3
@@ -10,7 +11,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip install -c constraints.txt
 OUT    ?= results
 
-.PHONY: reproduce reproduce-paper reproduce-paper-full test lint install install-dev bench bench-sb3 clean
+.PHONY: reproduce reproduce-paper reproduce-paper-full test lint docs docs-pages install install-dev bench bench-sb3 clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -19,7 +20,11 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.installed-dev: $(VENV)/.installed
-	$(PIP) --quiet -e ".[dev,ray,sb3,video]"
+	$(PIP) --quiet -e ".[dev,ray,sb3,video,docs]"
+	touch $@
+
+$(VENV)/.installed-docs: $(VENV)/.installed
+	$(PIP) --quiet -e ".[docs,sb3]"
 	touch $@
 
 install: $(VENV)/.installed
@@ -57,9 +62,20 @@ lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
-## The test suite: lint, types, then pytest.
-test: lint
+## The documentation site (Sphinx, MyST Markdown) into docs/_build/html, warnings as errors,
+## so a broken link or reference fails. First it checks that the generated pages (results
+## pages, the README's results table) are what docs/generate.py writes from the committed
+## results today; `make docs-pages` rewrites them after new results.
+docs: $(VENV)/.installed-docs
+	$(PY) docs/generate.py --check
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+
+docs-pages: $(VENV)/.installed
+	$(PY) docs/generate.py
+
+## The test suite: lint, types, the docs site, then pytest.
+test: lint docs
 	$(PY) -m pytest -q
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build docs/_autosummary

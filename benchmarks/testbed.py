@@ -52,6 +52,10 @@ SIDE_BY_SIDE = ("testbed", "paper")
 """The settings both implementations run: the test bed's own, and the paper's Table I
 values passed through the test bed's constructor (``testbed_worker.CONFIGS``)."""
 
+PAIRS = (("testbed", "testbed"), ("paper", "paper"), ("testbed+joint_head", "testbed"))
+"""(pporpe's settings, the test bed's) compared side by side: each with its own, and
+pporpe with its joint head against the test bed, what that choice alone changes."""
+
 TOWARD_TABLE_I: dict[str, dict[str, Any]] = {
     "lr": {"lr": 3e-4},
     "width": {"units": 100},
@@ -245,15 +249,20 @@ def select(records: list[dict[str, Any]], **where: Any) -> list[dict[str, Any]]:
     return [r for r in records if all(r[k] == v for k, v in where.items())]
 
 
-def side_by_side(records: list[dict[str, Any]], task: str, config: str) -> dict[str, Any] | None:
-    """Both implementations on one task and config: CIs and P(pporpe > test bed)."""
+def side_by_side(
+    records: list[dict[str, Any]], task: str, config: str, reference: str | None = None
+) -> dict[str, Any] | None:
+    """pporpe with ``config`` beside the test bed with ``reference`` (default: the same
+    settings) on one task: CIs and P(pporpe > test bed)."""
     from pporpe.experiments.stats import bootstrap_ci, probability_of_improvement_ci
 
+    reference = config if reference is None else reference
     ours = select(records, implementation="pporpe", task=task, config=config)
-    ref = select(records, implementation="testbed", task=task, config=config)
+    ref = select(records, implementation="testbed", task=task, config=reference)
     if not ours or not ref:
         return None
-    row: dict[str, Any] = {"task": task, "config": config, "seeds": {}}
+    label = config if reference == config else f"{config} / {reference}"
+    row: dict[str, Any] = {"task": task, "config": label, "seeds": {}}
     for name, group in (("pporpe", ours), ("testbed", ref)):
         row["seeds"][name] = len(group)
         for metric in ("first50_mean", "score"):
@@ -263,6 +272,7 @@ def side_by_side(records: list[dict[str, Any]], task: str, config: str) -> dict[
             [r[metric] for r in ours], [r[metric] for r in ref]
         ).as_dict()
     row["bands"] = band_overlap(ours, ref)
+    row["curves"] = (config, reference)
     return row
 
 
@@ -390,7 +400,9 @@ def step_table(root: Path) -> list[str]:
     return lines
 
 
-def plot_curves(records: list[dict[str, Any]], task: str, config: str, out: Path) -> None:
+def plot_curves(
+    records: list[dict[str, Any]], task: str, config: str, reference: str, out: Path
+) -> None:
     """The two implementations' mean learning curves with 95% bands, one figure."""
     import matplotlib
 
@@ -399,16 +411,16 @@ def plot_curves(records: list[dict[str, Any]], task: str, config: str, out: Path
     import numpy as np
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for impl, colour in (("pporpe", "tab:blue"), ("testbed", "tab:orange")):
-        group = select(records, implementation=impl, task=task, config=config)
+    for impl, cfg, colour in (("pporpe", config, "tab:blue"), ("testbed", reference, "tab:orange")):
+        group = select(records, implementation=impl, task=task, config=cfg)
         mean, lo, hi = mean_band(group)
         x = np.arange(1, len(mean) + 1)
-        label = f"{'pporpe TESTBED' if impl == 'pporpe' else 'test bed'} ({len(group)} seeds)"
+        label = f"{'pporpe' if impl == 'pporpe' else 'test bed'} '{cfg}' ({len(group)} seeds)"
         ax.plot(x, mean, color=colour, label=label)
         ax.fill_between(x, lo, hi, color=colour, alpha=0.25, linewidth=0)
     ax.set_xlabel("episode")
     ax.set_ylabel("training return")
-    ax.set_title(f"{TASKS[task]}, settings '{config}': mean and 95% band")
+    ax.set_title(f"{task}: mean training return and its 95% band")
     ax.legend(loc="lower right")
     fig.tight_layout()
     fig.savefig(out, dpi=120)
@@ -426,13 +438,14 @@ def summarize(args: argparse.Namespace) -> int:
     pairs = [
         row
         for task in tasks
-        for config in SIDE_BY_SIDE
-        if (row := side_by_side(records, task, config)) is not None
+        for config, reference in PAIRS
+        if (row := side_by_side(records, task, config, reference)) is not None
     ]
     paths = [row for task in tasks for row in path_rows(records, task)]
     for row in pairs:
-        plot_curves(records, row["task"], row["config"],
-                    args.root / f"curves_{row['task']}_{row['config']}.png")  # fmt: skip
+        config, reference = row["curves"]
+        plot_curves(records, row["task"], config, reference,
+                    args.root / f"curves_{row['task']}_{config}.png")  # fmt: skip
     versions = sorted({json.dumps(r["versions"], sort_keys=True) for r in records if r["versions"]})
     atomic_write_json(
         args.root / "summary.json",

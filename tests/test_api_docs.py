@@ -1,9 +1,11 @@
-"""Every ``python`` block of docs/api.md runs, in order, in one namespace (issue 12)."""
+"""Every ``python`` block of docs/api.md runs, in order, in one namespace (issue 12); every
+example of the README and of the guide pages runs, and every documented command parses."""
 
 from __future__ import annotations
 
 import os
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -37,13 +39,109 @@ def test_api_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     assert os.listdir(tmp_path / "results/tiny")
 
 
-def test_readme_sb3_switch_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    readme = (API.parents[1] / "README.md").read_text()
-    blocks = re.findall(r"^```python\n(.*?)^```$", readme, flags=re.S | re.M)
-    (snippet,) = [b for b in blocks if "from pporpe.sb3 import PPO" in b]
+ROOT = API.parents[1]
+README = (ROOT / "README.md").read_text()
+GUIDE = ["getting-started.md", "batch.md", "sb3.md", "run-folders.md"]
+"""The docs pages besides api.md whose ``python`` blocks run (each page on its own)."""
+
+
+def _blocks(text: str, lang: str) -> list[str]:
+    return re.findall(rf"^```{lang}\n(.*?)^```$", text, flags=re.S | re.M)
+
+
+def _commands(text: str) -> list[list[str]]:
+    """The ``pporpe ...`` command lines of a text's ``bash`` blocks, comments dropped."""
+    lines = [ln for b in _blocks(text, "bash") for ln in b.splitlines()]
+    return [shlex.split(ln, comments=True) for ln in lines if ln.startswith("pporpe ")]
+
+
+def _run_blocks(blocks: list[str], where: str) -> dict[str, object]:
     torch.set_num_threads(1)
+    namespace: dict[str, object] = {"__name__": "__docs__"}
+    for i, block in enumerate(blocks):
+        try:
+            exec(compile(block, f"{where} block {i + 1}", "exec"), namespace)
+        except Exception as exc:  # name the block that failed
+            raise AssertionError(f"{where} block {i + 1} failed: {exc!r}\n{block}") from exc
+    return namespace
+
+
+def test_readme_python_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every ``python`` block of the README runs as written: the surrogate in a loss of
+    one's own, and the one-word switch inside Stable-Baselines3."""
+    blocks = _blocks(README, "python")
+    assert len(blocks) == 2
     monkeypatch.chdir(tmp_path)
-    namespace: dict[str, object] = {}
-    exec(compile(snippet, "README.md (sb3)", "exec"), namespace)
-    assert namespace["model"].surrogate == "rpe"  # type: ignore[attr-defined]
-    assert (tmp_path / "ppo_rpe_pendulum.zip").exists()
+    ns = _run_blocks(blocks, "README.md")
+    assert torch.isfinite(ns["loss"]).item()  # type: ignore[arg-type]
+    assert ns["logp_old"].requires_grad is False  # type: ignore[attr-defined]
+    assert ns["ratio"].grad_fn is not None  # type: ignore[attr-defined]
+    assert ns["model"].surrogate == "rpe"  # type: ignore[attr-defined]
+    assert ns["model"].num_timesteps >= 1024  # type: ignore[attr-defined]
+
+
+def test_readme_cli_example_runs_with_a_tiny_budget(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's command-line example, as written but for its budget (2 training
+    episodes, 1 test episode, no compile step), trains and evaluates a run folder."""
+    from pporpe.cli import main
+
+    train, evaluate = _commands(README)
+    assert train[:2] == ["pporpe", "train"] and evaluate[:2] == ["pporpe", "evaluate"]
+    tiny = {"--episodes": "2", "--eval-episodes": "1"}
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    for argv in (train, evaluate):
+        args = [tiny.get(prev, arg) for prev, arg in zip(["", *argv], argv)][1:]
+        extra = ["--no-compile", "--quiet"] if argv[1] == "train" else []
+        assert main([*args, *extra]) == 0, argv
+    out = train[train.index("--out") + 1]
+    assert (tmp_path / out / "done.json").exists()
+    assert "test return over 1 episodes" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("page", GUIDE)
+def test_guide_examples_run(page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    blocks = _blocks((API.parent / page).read_text(), "python")
+    assert blocks, page
+    _run_blocks(blocks, f"docs/{page}")
+
+
+def test_every_documented_command_parses() -> None:
+    """Every ``pporpe ...`` line of the README's and the docs' ``bash`` blocks is a command
+    the parser accepts (running them takes minutes to hours)."""
+    from pporpe.cli import build_parser
+
+    pages = [README, *(p.read_text() for p in sorted(API.parent.glob("*.md")))]
+    commands = [c for text in pages for c in _commands(text)]
+    assert len(commands) >= 8
+    for argv in commands:
+        args = [a.replace("HOST:PORT", "127.0.0.1:6379") for a in argv[1:]]
+        try:
+            build_parser().parse_args(args)
+        except SystemExit as exc:
+            raise AssertionError(f"{shlex.join(argv)} does not parse") from exc
+
+
+def test_the_version_is_one_in_every_place() -> None:
+    """pyproject.toml, pporpe.__version__, the changelog's top entry and the README's
+    software citation name the same version."""
+    import tomllib
+
+    import pporpe
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    top = re.search(r"^## \[(\d+\.\d+\.\d+)\] - \d{4}-\d{2}-\d{2}$",
+                    (ROOT / "CHANGELOG.md").read_text(), flags=re.M)  # fmt: skip
+    cited = re.search(r"@software\{pporpe,.*?version = \{([^}]+)\}", README, flags=re.S)
+    assert top is not None and cited is not None
+    assert project["version"] == pporpe.__version__ == top.group(1) == cited.group(1)
+    assert project["license"] == "MIT" and (ROOT / "LICENSE").read_text().startswith("MIT")
+
+
+def test_readme_stays_a_front_page() -> None:
+    """At most 150 lines: history belongs in CHANGELOG.md and results in docs/results/."""
+    assert len(README.splitlines()) <= 150
+    assert "arxiv.org/abs/2010.03290" in README and "results/paper/fig_learning.png" in README

@@ -62,14 +62,14 @@ def test_all_but_entropy_is_the_authors_choices_with_the_bounded_actions_density
     assert ablation.VARIANTS["all_but_entropy"] == expected
     # pporpe 0.4's defaults: the author's choices but the critic signal and the density
     defaults = ablation.variant_settings("trace_kl+layer_norm+amsgrad+td_units")
-    assert defaults == dict(pporpe.online.V0_4_CHOICES)
+    assert defaults == dict(pporpe.online.DEFAULT_CHOICES)
     assert {k for k in defaults if defaults[k] != pporpe.online.AUTHOR_CHOICES[k]} == {
         "critic_signal",
         "entropy_density",
     }
-    assert pporpe.online.V0_2_CHOICES["entropy_density"] == "action"
+    assert pporpe.online.BASELINE_CHOICES["entropy_density"] == "action"
     assert ablation.VARIANTS["critic"] == {
-        **pporpe.online.V0_2_CHOICES,
+        **pporpe.online.BASELINE_CHOICES,
         **ablation.AUTHOR["critic"],
     }
 
@@ -77,7 +77,7 @@ def test_all_but_entropy_is_the_authors_choices_with_the_bounded_actions_density
 def test_a_combination_of_changes_is_the_baseline_with_those_changes() -> None:
     settings = ablation.variant_settings("amsgrad+td_units")
     assert settings == {
-        **pporpe.online.V0_2_CHOICES,
+        **pporpe.online.BASELINE_CHOICES,
         "amsgrad_max": "raw",
         "amsgrad_decay": 0.99999,
         "td_units": "unscaled",
@@ -107,7 +107,7 @@ def test_the_test_beds_weights_are_its_weight_and_balance_per_term() -> None:
     # leaves "all" the author's six
     name = ablation.canonical("weights+trace_kl+td_units+amsgrad+layer_norm")
     assert name == "td_units+amsgrad+layer_norm+trace_kl+weights"
-    assert ablation.variant_settings(name) == {**pporpe.online.V0_4_CHOICES, **weights}
+    assert ablation.variant_settings(name) == {**pporpe.online.DEFAULT_CHOICES, **weights}
     assert ablation.VARIANTS["all"] == dict(pporpe.online.AUTHOR_CHOICES)
     assert "weights" not in ablation.VARIANTS and "lr_width" not in ablation.VARIANTS
     config = pporpe.online.OnlineConfig(**ablation.variant_settings("amsgrad+lr_width"))
@@ -302,12 +302,13 @@ def _tables(text: str) -> list[str]:
     return [line.strip() for line in text.splitlines() if line.strip().startswith("|")]
 
 
-def test_committed_ablation_tables_are_the_committed_runs_and_the_readme_shows_them(
+def test_committed_ablation_tables_are_the_committed_runs_and_the_docs_page_shows_them(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """benchmarks/results/ablation.md is what --summarize writes from the committed run
-    folders today, and the README's ablation table is its summary table: a run added or
-    a table edited by hand without the other fails here."""
+    folders today, and the generated docs page docs/results/ablation.md shows every one of
+    its tables, in order: a run added or a table edited by hand without the other fails
+    here (``python docs/generate.py`` rewrites the page)."""
     md, runs = tmp_path / "ablation.md", ROOT / "benchmarks" / "results" / "ablation"
     argv = ["ablation.py", "--summarize", "--out", str(runs), "--json", str(tmp_path / "a.json")]
     monkeypatch.setattr(sys, "argv", [*argv, "--markdown", str(md)])
@@ -321,9 +322,10 @@ def test_committed_ablation_tables_are_the_committed_runs_and_the_readme_shows_t
     finished = {row["variant"] for row in json.loads((tmp_path / "a.json").read_text())["rows"]}
     in_order = [v for v in ablation.variants_on_disk(runs) if v in finished]
     assert [row.split(" | ")[0].removeprefix("| ") for row in summary[2:]] == in_order
-    readme = _tables((ROOT / "README.md").read_text())
-    start = readme.index(summary[0])
-    assert readme[start : start + len(summary)] == summary
+    page = _tables((ROOT / "docs" / "results" / "ablation.md").read_text())
+    start = page.index(summary[0])
+    assert page[start : start + len(committed)] == committed
+    assert summary[0] not in _tables((ROOT / "README.md").read_text())  # a front page now
 
 
 def _testbed_modules() -> tuple[Any, Any]:

@@ -6,7 +6,7 @@ import gymnasium
 import numpy as np
 import pytest
 
-from pporpe.envs import ALIASES, env_spec_summary, make_env, resolve_env_id
+from pporpe.envs import ALIASES, QuietBulletStart, env_spec_summary, make_env, resolve_env_id
 
 BULLET_TASKS = [
     ("pendulum", 5, 1),
@@ -109,7 +109,8 @@ def test_bullet_task_builds_resets_and_steps(alias: str, obs_dim: int, act_dim: 
         assert summary["max_episode_steps"] == 1000
         assert summary["action_low"] == [-1.0] * act_dim
         assert summary["action_high"] == [1.0] * act_dim
-        assert isinstance(env, gymnasium.wrappers.TimeLimit)
+        assert isinstance(env, QuietBulletStart)
+        assert isinstance(env.env, gymnasium.wrappers.TimeLimit)
 
         obs, info = env.reset(seed=3)
         assert obs.shape == (obs_dim,)
@@ -132,3 +133,22 @@ def test_bullet_task_builds_resets_and_steps(alias: str, obs_dim: int, act_dim: 
     finally:
         env.close()
         twin.close()
+
+
+def test_a_bullet_client_starts_without_printing(capfd: pytest.CaptureFixture[str]) -> None:
+    """PyBullet's C code prints two ``argv[0]=`` lines to descriptor 1 when an environment's
+    client connects (its first reset), into the progress bar of ``pporpe train``; they are
+    silenced for that reset, and what Python prints afterwards still comes through."""
+    env = make_env("pendulum", seed=0)
+    try:
+        capfd.readouterr()
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+        env.reset()
+        print("after the start")
+        out, err = capfd.readouterr()
+        assert "argv[0]" not in out + err
+        assert out == "after the start\n"
+    finally:
+        env.close()
+    assert not isinstance(make_env("Pendulum-v1"), QuietBulletStart)  # no Bullet client

@@ -25,7 +25,7 @@ from pporpe.experiments.reproduce import (
     reproduce,
     run_progress,
 )
-from pporpe.online import AUTHOR_CHOICES, V0_4_CHOICES
+from pporpe.online import AUTHOR_CHOICES, DEFAULT_CHOICES
 from pporpe.runs.folder import config_json, open_run_dir
 from pporpe.runs.kinds import kind_of
 from pporpe.runs.logger import read_records
@@ -84,7 +84,7 @@ def test_repository_specs_parse() -> None:
         assert {k: getattr(learner, k) for k in AUTHOR_CHOICES} == dict(AUTHOR_CHOICES)
     for run in quick.runs:
         learner = run.config.learner
-        assert {k: getattr(learner, k) for k in V0_4_CHOICES} == dict(V0_4_CHOICES)
+        assert {k: getattr(learner, k) for k in DEFAULT_CHOICES} == dict(DEFAULT_CHOICES)
 
 
 def test_the_committed_reproduction_is_the_paper_specs_runs(tmp_path: Path) -> None:
@@ -429,3 +429,26 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     (a / "episodes.csv").write_text(header + rows([1] * 10))
     (d / "done.json").write_text("{}")
     assert bar.count_episodes() == "30/30"
+
+
+def test_progress_bar_shows_its_own_time_left_and_not_tqdms(tmp_path: Path) -> None:
+    """tqdm's own time left and rate extrapolate the count of finished runs, which in a
+    population finish together ("13:31<6:32:04, 811.18s/run" for a grid that ended in 69
+    minutes): the bar shows only its own estimate, from the steps still to run."""
+    header = "episode,total_steps,ret,length\n"
+    run = tmp_path / "a"
+    run.mkdir()
+    (run / "episodes.csv").write_text(header + "0,10,0,10\n")
+    file = io.StringIO()
+    bar = _Progress(3, 1, [run], enabled=True, budgets=[10], file=file)
+    bar.poll(1, [])  # the first count: no rate yet
+    (run / "episodes.csv").write_text(header + "0,10,0,10\n1,20,0,10\n")
+    bar.history[0] = (bar.history[0][0] - 60.0, 10)  # 10 steps in a minute
+    bar.t_counted = -float("inf")
+    bar.poll(1, [])
+    line = file.getvalue().rsplit("\r", 1)[-1]
+    assert "episodes=2/10, left~8 min" in line  # 8 episodes of 10 steps at 10 steps a minute
+    assert " 1/3 [" in line
+    for tqdm_estimate in ("<", "run/s", "s/run", "?"):
+        assert tqdm_estimate not in line, line
+    bar.close()

@@ -20,9 +20,11 @@ policy maps into its bounds) and a 1-D Box observation space.
 The Bullet environments are registered by importing ``pybullet_envs_gymnasium``,
 done lazily here. PyBullet prints a "pybullet build time" banner from C when it is
 first imported (to standard error); :func:`make_env` imports it with the
-process's standard output and error silenced at the file-descriptor level.
-(PyBullet also prints ``argv[0]=`` lines to standard output when an environment
-first connects, on its first ``reset``; those are not silenced.)
+process's standard output and error silenced at the file-descriptor level. PyBullet
+also prints ``argv[0]=`` lines to standard output when an environment's Bullet client
+starts (on its first ``reset``), which would land in a progress bar: a Bullet
+environment from :func:`make_env` is wrapped in :class:`QuietBulletStart`, which
+silences the descriptors for that one reset.
 """
 
 from __future__ import annotations
@@ -40,7 +42,14 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["ALIASES", "ReplayableEnv", "env_spec_summary", "make_env", "resolve_env_id"]
+__all__ = [
+    "ALIASES",
+    "QuietBulletStart",
+    "ReplayableEnv",
+    "env_spec_summary",
+    "make_env",
+    "resolve_env_id",
+]
 
 ALIASES: dict[str, str] = {
     "pendulum": "InvertedPendulumBulletEnv-v0",
@@ -62,19 +71,21 @@ def _aliases_text() -> str:
 def _quiet_output() -> Iterator[None]:
     """Silence the process's standard output and error (descriptors 1 and 2) briefly.
 
-    C libraries write to the descriptors directly, so replacing ``sys.stdout`` is
-    not enough. A stream without a usable descriptor is left alone.
+    C libraries write to the descriptors directly, so replacing ``sys.stdout`` is not
+    enough, and the descriptors are 1 and 2 whatever ``sys.stdout`` is now (under a capture
+    its ``fileno()`` may name another file). A descriptor that is not open is left alone.
     """
     saved: list[tuple[int, int]] = []
     with contextlib.ExitStack() as stack:
         devnull = stack.enter_context(open(os.devnull, "w"))
         for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(AttributeError, OSError, ValueError):
+                stream.flush()
+        for fd in (1, 2):
             try:
-                fd = stream.fileno()
-            except (AttributeError, OSError, ValueError):
+                saved.append((fd, os.dup(fd)))
+            except OSError:
                 continue
-            stream.flush()
-            saved.append((fd, os.dup(fd)))
             os.dup2(devnull.fileno(), fd)
         try:
             yield
@@ -149,7 +160,9 @@ def make_env(name: str, seed: int | None = None, **kwargs: Any) -> gymnasium.Env
     Returns:
         The environment as ``gymnasium.make`` returns it, with its ``TimeLimit``
         wrapper: ``step`` returns ``(obs, reward, terminated, truncated, info)``
-        where ``truncated`` marks the step limit.
+        where ``truncated`` marks the step limit. A PyBullet environment comes inside
+        :class:`QuietBulletStart` (outermost), so that its first ``reset`` prints
+        nothing.
 
     Raises:
         ValueError: unknown name; an action space that is not a
@@ -161,6 +174,8 @@ def make_env(name: str, seed: int | None = None, **kwargs: Any) -> gymnasium.Env
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
     env = gymnasium.make(env_id, **kwargs)
+    if hasattr(env.unwrapped, "physicsClientId"):
+        env = QuietBulletStart(env)
     act_space, obs_space = env.action_space, env.observation_space
     if not isinstance(act_space, spaces.Box):
         env.close()
@@ -187,6 +202,24 @@ def make_env(name: str, seed: int | None = None, **kwargs: Any) -> gymnasium.Env
         act_space.seed(seed)
         obs_space.seed(seed)
     return env
+
+
+class QuietBulletStart(gymnasium.Wrapper):
+    """Silences standard output and error while a PyBullet environment's client starts.
+
+    A PyBullet environment connects to its physics server on its first ``reset``, and the
+    C code prints ``argv[0]=`` lines to the process's descriptors as it does, into
+    whatever progress bar is on the terminal. This wrapper runs a ``reset`` that starts the
+    client (``physicsClientId < 0`` before it) with descriptors 1 and 2 sent to
+    ``/dev/null``; every later ``reset`` and every ``step`` passes through untouched.
+    Python exceptions still propagate, and are printed after the descriptors are back.
+    """
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        if getattr(self.env.unwrapped, "physicsClientId", 0) >= 0:
+            return self.env.reset(seed=seed, options=options)
+        with _quiet_output():
+            return self.env.reset(seed=seed, options=options)
 
 
 def env_spec_summary(env: gymnasium.Env) -> dict[str, Any]:

@@ -266,6 +266,10 @@ class _Progress:
     an episode budget, the episodes on disk with the time left at their rate (a population
     finishes its runs together, so the run count alone stays at 0 for most of a task)."""
 
+    BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
+    """tqdm's default bar without its own time left and rate ("<6:32:04, 811.18s/run"):
+    they extrapolate the count of finished runs, which in populations finish together, so
+    the only estimate shown is the bar's own ``left~``, from the steps still to run."""
     COUNT_EVERY_S = 30.0
     """Seconds between two counts of the runs' episodes (each reads every episodes.csv)."""
     RATE_COUNTS = 10
@@ -305,6 +309,7 @@ class _Progress:
                 desc="grid",
                 dynamic_ncols=True,
                 file=self.file,
+                bar_format=self.BAR_FORMAT,
             )
 
     def count_episodes(self) -> str:
