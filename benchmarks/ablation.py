@@ -343,9 +343,10 @@ def markdown(
     comparisons: dict[str, list[dict[str, Any]]],
     both: dict[str, list[dict[str, Any]]] | None = None,
 ) -> str:
-    """The tables of the README and docs/online-learner.md: :func:`summary_table`, then
-    per task one line per variant with each method's mean score [95% CI] and seeds at the
-    threshold, then P(> baseline) and P(> all) pooled over the methods [95% CI]."""
+    """The tables of benchmarks/results/ablation.md (docs/results/ablation.md shows them):
+    :func:`summary_table`, then per task one line per variant with each method's mean
+    score [95% CI] and seeds at the threshold, then P(> baseline) and P(> all) pooled over
+    the methods [95% CI]."""
     cells: dict[tuple[str, str], dict[str, str]] = {}
     for r in rows:
         m, n = r["mean"], r["seeds"]
