@@ -80,9 +80,8 @@ def transitions(steps: int, seed: int) -> list[tuple[np.ndarray, np.ndarray, flo
     ]
 
 
-def run_testbed(ac: Any, s0: np.ndarray, u0: np.ndarray, data: list, theta0: torch.Tensor) -> list:
+def run_testbed(agent: Any, s0: np.ndarray, u0: np.ndarray, data: list) -> list:
     """The test bed's train() order with the given actions; parameters after each update."""
-    agent = ac
     agent.train()
     agent.reset()
     _, base_pi, base_v = agent(s0)
@@ -128,7 +127,7 @@ def compare(ac_cls: Any, k_dof: float, head: str, steps: int, seed: int) -> dict
     u0 = rng.normal(size=ACT).astype(np.float32)
     data = transitions(steps, seed + 1)
     ours = run_pporpe(cfg, s0, u0, data, theta0)
-    theirs = run_testbed(ac, s0, u0, data, theta0)
+    theirs = run_testbed(ac, s0, u0, data)
     # the control: pporpe against itself from a start 1 ulp away (every parameter's last
     # bit flipped at random), the size of float rounding grown through the same updates
     flip = torch.from_numpy(rng.choice([-1.0, 1.0], size=theta0.numel()).astype(np.float32))

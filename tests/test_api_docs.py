@@ -23,14 +23,8 @@ def test_api_page_has_an_example_per_public_part() -> None:
 
 
 def test_api_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    torch.set_num_threads(1)
     monkeypatch.chdir(tmp_path)
-    namespace: dict[str, object] = {"__name__": "__api_docs__"}
-    for i, block in enumerate(BLOCKS):
-        try:
-            exec(compile(block, f"docs/api.md block {i + 1}", "exec"), namespace)
-        except Exception as exc:  # name the block that failed
-            raise AssertionError(f"docs/api.md block {i + 1} failed: {exc!r}\n{block}") from exc
+    _run_blocks(BLOCKS, "docs/api.md")
     # What the examples wrote is there.
     assert (tmp_path / "runs/online/done.json").exists()
     assert (tmp_path / "runs/batch/evaluation.json").exists()

@@ -181,9 +181,9 @@ class ConfigFlags:
 def values_for(flags: ConfigFlags, args: argparse.Namespace, group: FlagGroup) -> dict[str, Any]:
     """The given flags of ``group``, by field name (tuples for two-number fields)."""
     out: dict[str, Any] = {}
-    for flag, name in ((fl, n) for fl, owners in flags.owners.items() for g, n in owners
-                       if g is group):  # fmt: skip
-        if hasattr(args, flag):
-            value = getattr(args, flag)
-            out[name] = tuple(value) if isinstance(value, list) else value
+    for flag, owners in flags.owners.items():
+        for owner, name in owners:
+            if owner is group and hasattr(args, flag):
+                value = getattr(args, flag)
+                out[name] = tuple(value) if isinstance(value, list) else value
     return out
