@@ -177,7 +177,11 @@ def test_analytic_trace_divergence_in_the_learner() -> None:
     squared value change, from the stored baseline and the current parameters."""
     p = pop([cfg(trace_divergence="analytic", lr=1e-2)], [3])
     drive(p, 1)
-    raw_b, value_b, obs = p._raw_b.clone(), p._value_b.clone(), p._obs.clone()
+    raw_b, value_b, obs = (
+        p.state.pending.raw_b.clone(),
+        p.state.pending.value_b.clone(),
+        p.state.pending.obs.clone(),
+    )
     out, _ = forward_chain(p._flat(2), obs.view(1, 1, OBS).repeat(2, 1, 1), p.lay, "swish")
     raw_now, v_now = out[0, 0].double(), out[1, 0, 0].double()
     kl = max(float(p.head.kl(raw_now, raw_b[0].double())), 0.0)
@@ -213,12 +217,14 @@ def test_amsgrad_maximum_raw_or_bias_corrected() -> None:
     no = np.zeros(2, dtype=bool)
     for t in range(1, 8):
         p.step(np.full(2, rng.normal()), np.repeat(rng.normal(size=(1, OBS)), 2, 0), no, no)
-        v_raw, v_cor = p.v[:, 0].double(), p.v[:, 1].double()
+        v_raw, v_cor = p.state.opt_v[:, 0].double(), p.state.opt_v[:, 1].double()
         best_raw = v_raw if best_raw is None else torch.maximum(best_raw, v_raw)
         bc2 = 1 - beta2**t
         best_hat = v_cor / bc2 if best_hat is None else torch.maximum(best_hat, v_cor / bc2)
-        torch.testing.assert_close(p.vmax_s[:, 0].double(), best_raw, rtol=1e-6, atol=1e-12)
-        torch.testing.assert_close(p.vmax_s[:, 1].double(), bc2 * best_hat, rtol=1e-5, atol=1e-12)
+        torch.testing.assert_close(p.state.opt_vmax[:, 0].double(), best_raw, rtol=1e-6, atol=1e-12)
+        torch.testing.assert_close(
+            p.state.opt_vmax[:, 1].double(), bc2 * best_hat, rtol=1e-5, atol=1e-12
+        )
 
 
 def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> None:
@@ -226,8 +232,8 @@ def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> Non
     detached); the TD choice receives grad[delta^2 / 2]-style delta * grad[-V]."""
     p = pop([cfg(critic_signal="actor", lambdas=(0.0, 0.0), method="ppo", lr=1e-2)], [2])
     drive(p, 1)
-    obs = p._obs.clone()
-    flat = p.P[1, 0].reshape(1, -1).clone().requires_grad_(True)
+    obs = p.state.pending.obs.clone()
+    flat = p.state.params[1, 0].reshape(1, -1).clone().requires_grad_(True)
     out, _ = forward_chain(flat, obs.view(1, 1, OBS), p.lay, "swish")
     v = out[0, 0, 0]
     (grad_v,) = torch.autograd.grad(v, flat)
@@ -236,7 +242,7 @@ def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> Non
     adv = s.adv[:1].double()
     rho_dagger = float(surrogate_objective("ppo", s.ratio[:1].double(), adv) / adv)
     assert rho_dagger != 1.0
-    received = s.adv[0] * p.G[1, 0].reshape(-1)
+    received = s.adv[0] * p.state.grad[1, 0].reshape(-1)
     expected = -float(s.adv[0]) * rho_dagger * grad_v[0]
     torch.testing.assert_close(received, expected, rtol=1e-4, atol=1e-7)
 
@@ -244,11 +250,13 @@ def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> Non
 def test_frozen_layer_norm_keeps_scale_and_shift() -> None:
     p = pop([cfg(layer_norm_affine=False), cfg()], [4, 4])
     rows = p.lay.norm_rows
-    before = p.P[:2, :, rows].clone()
+    before = p.state.params[:2, :, rows].clone()
     drive(p, 5)
-    assert torch.equal(p.P[:2, 0, rows], before[:, 0])
-    assert not torch.equal(p.P[:2, 1, rows], before[:, 1])
-    assert torch.all(p.P[:2, 0, rows[0::2]] == 1.0) and torch.all(p.P[:2, 0, rows[1::2]] == 0.0)
+    assert torch.equal(p.state.params[:2, 0, rows], before[:, 0])
+    assert not torch.equal(p.state.params[:2, 1, rows], before[:, 1])
+    assert torch.all(p.state.params[:2, 0, rows[0::2]] == 1.0) and torch.all(
+        p.state.params[:2, 0, rows[1::2]] == 0.0
+    )
 
 
 @pytest.mark.parametrize(

@@ -176,12 +176,9 @@ def _run(p: PopulationLearner, data: list[tuple]) -> tuple[list, list]:
 
 
 def _buffers(p: PopulationLearner) -> dict[str, np.ndarray]:
-    out = {
-        n: getattr(p, n).numpy().copy()
-        for n in ("P", "e", "r", "v", "vmax_s", "m", "W_opt", "D", "decay", "ts_W", "ts_sigma2",
-                  "_obs", "_u", "_logp_b", "_value_b", "_raw_b")
-    }  # fmt: skip
-    out["steps"], out["pending"], out["pos"] = p.steps.copy(), p._pending.copy(), p.noise.pos.copy()
+    """The population's state_dict as arrays, with the noise positions."""
+    out = {n: t.numpy() for n, t in p.state.state_dict().items()}
+    out["pos"] = p.noise.pos.copy()
     return out
 
 
@@ -211,15 +208,16 @@ def test_fused_engine_matches_torch_engine(configs: list[OnlineConfig]) -> None:
     absolute tolerance 1e-6 there.
     """
     bt, bf, st, sf, at, af = _pair(configs, 25)
-    for name in ("steps", "pending", "pos"):
+    exact = ("steps", "pending.waiting", "pos")
+    for name in exact:
         assert np.array_equal(bt[name], bf[name]), name
     for name, x in bt.items():
-        if name in ("steps", "pending", "pos"):
+        if name in exact:
             continue
         scale = max(float(np.abs(x).max()), 1e-6)
-        tol = 2e-4 if name in ("v", "vmax_s", "W_opt") else 1e-4
+        tol = 2e-4 if name in ("opt_v", "opt_vmax", "opt_weight") else 1e-4
         err = float(np.abs(x - bf[name]).max())
-        assert err <= (1e-6 if name == "D" else tol * scale), (name, err, scale)
+        assert err <= (1e-6 if name == "trace_divergence" else tol * scale), (name, err, scale)
     for a, b in zip(st, sf):
         for field in ("delta", "adv", "ratio", "divergence", "trace_decay"):
             atol = 1e-6 if field == "divergence" else 1e-5
@@ -227,7 +225,7 @@ def test_fused_engine_matches_torch_engine(configs: list[OnlineConfig]) -> None:
     np.testing.assert_allclose(np.stack(af), np.stack(at), rtol=0, atol=1e-4)
     # the parameters did move (the comparison is not of two idle learners)
     fresh = PopulationLearner(OBS, LOW, HIGH, configs, list(range(10, 10 + len(configs))))
-    assert float(np.abs(bt["P"] - fresh.P.numpy()).max()) > 1e-3
+    assert float(np.abs(bt["params"] - fresh.state.params.numpy()).max()) > 1e-3
 
 
 def test_fused_engine_first_step_matches_torch_tightly() -> None:
@@ -237,7 +235,7 @@ def test_fused_engine_first_step_matches_torch_tightly() -> None:
     # one step: the gradient (the trace e) to 2e-5 of its scale (float32 rounding of the
     # LayerNorm backward's mean subtractions, which cancel), and m = (1 - b) gv with it;
     # the parameters moved by lr * m, so their error is far below float32's resolution
-    for name, tol in (("e", 2e-5), ("m", 2e-5), ("P", 1e-6)):
+    for name, tol in (("trace_e", 2e-5), ("opt_m", 2e-5), ("params", 1e-6)):
         scale = float(np.abs(bt[name]).max())
         assert float(np.abs(bt[name] - bf[name]).max()) <= tol * scale, name
 
@@ -272,18 +270,26 @@ def test_fused_inactive_and_non_finite_members_stay_alone() -> None:
     assert a.finite().tolist() == [True, False, True]
     ba, bb = _buffers(a), _buffers(b)
     for k in (0, 2):
-        for n in ("P", "e", "r", "v", "vmax_s", "m", "W_opt"):
+        for n in ("params", "trace_e", "trace_r", "opt_v", "opt_vmax", "opt_m", "opt_weight"):
             assert np.array_equal(ba[n][:, k], bb[n][:, k]), (n, k)
-        for n in ("D", "decay", "ts_W", "ts_sigma2", "_raw_b", "_logp_b", "_obs"):
+        for n in (
+            "trace_divergence",
+            "decay",
+            "tsoft_weight",
+            "tsoft_sigma2",
+            "pending.raw_b",
+            "pending.logp_b",
+            "pending.obs",
+        ):
             assert np.array_equal(ba[n][k], bb[n][k]), (n, k)
     # an inactive member keeps every buffer bitwise, whatever its row of the inputs holds
     active = np.array([True, True, False])
     a.step(np.array([0.1, 0.1, np.nan]), np.full((3, OBS), np.nan), z, z, active=active)
     after = _buffers(a)
-    for n in ("P", "e", "r", "v", "vmax_s", "m", "W_opt"):
+    for n in ("params", "trace_e", "trace_r", "opt_v", "opt_vmax", "opt_m", "opt_weight"):
         assert np.array_equal(after[n][:, 2], ba[n][:, 2]), n
-    for n in ("D", "decay", "ts_W", "ts_sigma2", "_obs", "_u", "_logp_b", "_value_b", "steps",
-              "pos"):  # fmt: skip
+    for n in ("trace_divergence", "decay", "tsoft_weight", "tsoft_sigma2", "pending.obs",
+              "pending.u", "pending.logp_b", "pending.value_b", "steps", "pos"):  # fmt: skip
         assert np.array_equal(after[n][2], ba[n][2]), n
 
 
@@ -305,7 +311,8 @@ def test_fused_member_state_round_trip_continues_bitwise() -> None:
     ba, bb = _buffers(a), _buffers(b)
     for n in ba:
         x, y = ba[n], bb[n]
-        sl = (slice(None), 1) if n in ("P", "e", "r", "v", "vmax_s", "m", "W_opt") else 1
+        stacked = ("params", "trace_e", "trace_r", "opt_v", "opt_vmax", "opt_m", "opt_weight")
+        sl = (slice(None), 1) if n in stacked else 1
         assert np.array_equal(x[sl], y[sl]), n
 
 

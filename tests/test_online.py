@@ -101,7 +101,11 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
 
     # recompute the expected gradient from the learner's pending state before it steps
     cfg = learner.config
-    obs_t, u_t, logp_b = pop._obs[:1], pop._u[:1], pop._logp_b[:1]
+    obs_t, u_t, logp_b = (
+        pop.state.pending.obs[:1],
+        pop.state.pending.u[:1],
+        pop.state.pending.logp_b[:1],
+    )
     theta = learner.theta.detach().clone().requires_grad_(True)
     policy_fn, pol, val, value_fn = nets(learner, theta)
     _, _, tgt, _ = nets(learner, torch.cat([learner.theta[: -learner.target.numel()],
@@ -124,7 +128,7 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
 
     stats, _ = learner.step(r, next_obs, term, trunc)
     pi, vi = pop.lay.real_index
-    g = pop.G[:, 0].reshape(2, -1)  # this step's per-unit-signal gradient
+    g = pop.state.grad[:, 0].reshape(2, -1)  # this step's per-unit-signal gradient
     received = torch.cat([stats.adv * g[0, pi], stats.delta * g[1, vi]])
     torch.testing.assert_close(received, expected, rtol=1e-4, atol=1e-6)
 

@@ -90,7 +90,7 @@ def test_layout_matches_mlp_module() -> None:
     torch.manual_seed(4)
     ref = OnlineLearner(OBS, LOW, HIGH, cfg())
     x = torch.randn(5, OBS)
-    raw, _ = forward_chain(p.P[0].reshape(1, -1), x.unsqueeze(0), p.lay, "swish")
+    raw, _ = forward_chain(p.state.params[0].reshape(1, -1), x.unsqueeze(0), p.lay, "swish")
     torch.testing.assert_close(raw[0], ref.policy_raw(x), rtol=1e-6, atol=1e-6)
     assert torch.equal(p.member_theta(0), ref.theta.detach())
     assert torch.equal(p.member_target(0), ref.target)
@@ -173,8 +173,9 @@ def test_non_finite_member_is_isolated(engine: str) -> None:
     assert a.finite().tolist() == [True, False, True]
     assert b.finite().all()
     for k in (0, 2):
-        assert torch.equal(a.P[:, k], b.P[:, k])
-        assert torch.equal(a.m[:, k], b.m[:, k]) and torch.equal(a.e[:, k], b.e[:, k])
+        assert torch.equal(a.state.params[:, k], b.state.params[:, k])
+        assert torch.equal(a.state.opt_m[:, k], b.state.opt_m[:, k])
+        assert torch.equal(a.state.trace_e[:, k], b.state.trace_e[:, k])
 
 
 # ------------------------------------------------------------------------------- (e)
@@ -234,12 +235,15 @@ def test_member_does_not_depend_on_slot_or_K(engine: str) -> None:
 
 # ------------------------------------------------------------------------------- (g)
 def _member_snapshot(p: PopulationLearner, k: int) -> list[torch.Tensor]:
-    return [
-        p.P[:, k].clone(), p.e[:, k].clone(), p.r[:, k].clone(), p.v[:, k].clone(),
-        p.vmax_s[:, k].clone(), p.m[:, k].clone(), p.W_opt[:, k].clone(), p.D[k].clone(),
-        p.decay[k].clone(), p.ts_W[k].clone(), p.ts_sigma2[k].clone(),
-        torch.tensor([int(p.steps[k]), int(p.noise.pos[k])]),
-    ]  # fmt: skip
+    """Every tensor of member k's checkpoint (its slice of the state, its noise stream)
+    and its noise position, flattened."""
+
+    def leaves(x: object) -> list[torch.Tensor]:
+        if isinstance(x, dict):
+            return [t for v in x.values() for t in leaves(v)]
+        return [] if x is None else [torch.as_tensor(x)]
+
+    return [*leaves(p.member_state(k)), torch.tensor([int(p.noise.pos[k])])]
 
 
 @pytest.mark.parametrize("engine", ENGINES)
@@ -278,6 +282,46 @@ def test_member_state_round_trip_continues_bitwise(engine: str) -> None:
     assert all(torch.equal(x, y) for x, y in zip(sa, sb, strict=True))
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_population_state_dict_round_trip_continues_bitwise(engine: str) -> None:
+    """The whole population's state_dict, mid-episode, into a population built with the
+    same configs and other seeds: both go on with the same numbers, bitwise."""
+    configs = [cfg(), cfg(method="ppo", lr=1e-3), cfg(method="rb")]
+    a = pop(configs, [0, 1, 2], engine=engine)
+    obs0 = np.zeros(OBS, np.float32)
+    K = a.K
+    a.begin_episode(range(K), np.stack([obs0] * K))
+    for r, o, _, _ in data(7, seed=2):  # mid-episode: a transition is pending
+        a.step(np.full(K, r), np.stack([o] * K), np.zeros(K, bool), np.zeros(K, bool))
+    saved = a.state_dict()
+    assert "grad" not in saved["state"] and saved["state"]["pending.waiting"].all()
+    b = pop(configs, [7, 8, 9], engine=engine)
+    b.load_state_dict(saved)
+    for r, o, term, trunc in data(12, seed=5, episode=6):
+        step = (np.full(K, r), np.stack([o] * K), np.full(K, term), np.full(K, trunc))
+        (sa, xa), (sb, xb) = a.step(*step), b.step(*step)
+        assert np.array_equal(xa, xb) and torch.equal(sa.delta, sb.delta)
+        if term or trunc:
+            assert np.array_equal(a.begin_episode(range(K), np.stack([obs0] * K)),
+                                  b.begin_episode(range(K), np.stack([obs0] * K)))  # fmt: skip
+    after_a, after_b = a.state.state_dict(), b.state.state_dict()
+    assert all(torch.equal(after_a[n], after_b[n]) for n in after_a)
+    # the saved copy is a copy: the run went on without changing it
+    assert not torch.equal(saved["state"]["params"], after_a["params"])
+
+
+def test_population_state_dict_rejects_another_shape() -> None:
+    a = pop([cfg(), cfg()], [0, 1])
+    saved = a.state.state_dict()
+    b = pop([cfg()], [0])
+    with pytest.raises(ValueError, match=r"state_dict\['params'\] has shape"):
+        b.state.load_state_dict(saved)
+    with pytest.raises(ValueError, match="missing \\['decay'\\]"):
+        a.state.load_state_dict({n: t for n, t in saved.items() if n != "decay"})
+    with pytest.raises(ValueError, match="holds 2 members; this has 1"):
+        b.load_state_dict(a.state_dict())
+
+
 # ------------------------------------------------------------------------------- (h)
 @pytest.mark.parametrize("engine", ENGINES)
 def test_reset_member_equals_fresh_population(engine: str) -> None:
@@ -307,8 +351,8 @@ def test_compiled_update_matches_eager() -> None:
     _, ae = run_pop(e, trans, np.zeros(OBS, np.float32))
     _, ac = run_pop(c, trans, np.zeros(OBS, np.float32))
     np.testing.assert_allclose(np.stack(ae), np.stack(ac), rtol=0, atol=1e-5)
-    torch.testing.assert_close(c.P, e.P, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(c.m, e.m, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(c.state.params, e.state.params, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(c.state.opt_m, e.state.opt_m, rtol=1e-4, atol=1e-6)
 
 
 def test_normal_head_and_no_layer_norm_run() -> None:

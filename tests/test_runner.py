@@ -62,7 +62,7 @@ def test_same_seed_same_records_and_parameters(tmp_path: Path) -> None:
     assert strip_time(a.records) == strip_time(b.records)
     sa = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     sb = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
-    assert torch.equal(sa["learner"]["theta"], sb["learner"]["theta"])
+    assert torch.equal(sa["learner"]["params"], sb["learner"]["params"])
 
 
 class Crash(RuntimeError):
@@ -88,7 +88,7 @@ def test_resume_after_crash_matches_uninterrupted_run(tmp_path: Path) -> None:
     assert strip_time(read_records(run / "episodes.csv")) == strip_time(full.records)
     s_full = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)
     s_res = torch.load(run / "checkpoint.pt", weights_only=False)
-    assert torch.equal(s_full["learner"]["theta"], s_res["learner"]["theta"])
+    assert torch.equal(s_full["learner"]["params"], s_res["learner"]["params"])
     # a finished run is not trained again
     again = train(cfg(eval_episodes=0), run, progress=False)
     assert again.resumed_from == 6 and strip_time(again.records) == strip_time(full.records)
@@ -138,7 +138,7 @@ def test_non_finite_reward_stops_with_episode_and_step_and_keeps_checkpoint(
         train(c, tmp_path, progress=False)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert len(state["records"]) == 3  # the last good checkpoint survives
-    assert torch.isfinite(state["learner"]["theta"]).all()
+    assert torch.isfinite(state["learner"]["params"]).all()
     assert len(read_records(tmp_path / "episodes.csv")) == 3
 
 
@@ -192,9 +192,7 @@ def test_cli_train_rejects_bad_input_before_work(
     assert not out.exists()
 
 
-def test_cli_rejects_negative_episodes(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_cli_rejects_negative_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["train", "--episodes", "-5", "--out", str(tmp_path / "x")]) == 2
     assert "episodes" in capsys.readouterr().err and not (tmp_path / "x").exists()
 

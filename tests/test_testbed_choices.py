@@ -71,7 +71,7 @@ def one_step(p: PopulationLearner, log_ratio_shift: list[float]) -> tuple:
     u = torch.tensor([[0.4, -0.7]]).repeat(K, 1)
     obs0 = np.tile(np.array([[0.1, -0.2, 0.3]]), (K, 1))
     p.begin_episode(range(K), obs0, forced_u=u)
-    p._logp_b -= torch.tensor(log_ratio_shift)  # test hook: rho = exp(shift)
+    p.state.pending.logp_b.sub_(torch.tensor(log_ratio_shift))  # test hook: rho = exp(shift)
     theta_before = [p.member_theta(k).clone() for k in range(K)]
     no = np.zeros(K, dtype=bool)
     stats, _ = p.step(np.full(K, 0.8), np.ones((K, OBS)), no, no, forced_u=u)
@@ -79,7 +79,7 @@ def one_step(p: PopulationLearner, log_ratio_shift: list[float]) -> tuple:
 
 
 def policy_gradient_of(p: PopulationLearner, k: int) -> torch.Tensor:
-    return p.G[0, k].reshape(-1)[p.lay.real_index[0]].double()
+    return p.state.grad[0, k].reshape(-1)[p.lay.real_index[0]].double()
 
 
 @pytest.mark.parametrize("shift", [0.4, -0.4, 0.02])
@@ -190,7 +190,7 @@ def test_tau_one_keeps_the_target_equal_to_the_online_network() -> None:
     rng = np.random.default_rng(0)
     for _ in range(5):
         p.step(np.array([rng.normal()]), rng.normal(size=(1, OBS)), no, no, forced_u=u)
-        assert torch.equal(p.P[2, 0], p.P[1, 0])
+        assert torch.equal(p.state.params[2, 0], p.state.params[1, 0])
 
 
 def _segments64(lay: object, parts: tuple[int, ...]) -> list[tuple[list[int], int]]:
@@ -276,7 +276,7 @@ def test_split_head_changes_only_the_output_layer_at_first() -> None:
     for step in (1, 2):
         for p in (joint, split):
             p.step(np.array([0.5]), obs[step], no, no, forced_u=u)
-        gap = (joint.P[0, 0] - split.P[0, 0]).abs()
+        gap = (joint.state.params[0, 0] - split.state.params[0, 0]).abs()
         gaps.append((float(gap[out].max()), float(gap[~out].max())))
     (out1, rest1), (out2, rest2) = gaps
     assert rest1 == 0.0 and out1 < 1e-6

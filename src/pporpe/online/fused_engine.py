@@ -55,15 +55,18 @@ class FusedEngine:
         self.hf = np.array([pop.head.min_scale, float(lay.n_real[1])])
         am = pop.action_map
         self.bounds = torch.stack([am.low, am.high, am.log_range]).numpy().astype(np.float32)
-        self.P = _np(pop.P, 3, K, n_pad)
+        st, co, pend = pop.state, pop.consts, pop.state.pending
+        self.P = _np(st.params, 3, K, n_pad)
+        moments = (st.trace_e, st.trace_r, st.opt_v, st.opt_vmax, st.opt_m)
         self.opt = (
-            *(_np(x, 2, K, n_pad) for x in (pop.e, pop.r, pop.v, pop.vmax_s, pop.m)),
-            _np(pop.W_opt), _np(pop.num), _np(pop.den),
+            *(_np(x, 2, K, n_pad) for x in moments),
+            _np(st.opt_weight), _np(co.seg_num), _np(co.seg_den),
         )  # fmt: skip
-        self.sc = (_np(pop.D), _np(pop.decay), _np(pop.ts_W), _np(pop.ts_sigma2), pop.steps)
+        self.sc = (_np(st.trace_divergence), _np(st.decay), _np(st.tsoft_weight),
+                   _np(st.tsoft_sigma2), st.steps)  # fmt: skip
         self.pend = (
-            _np(pop._obs), _np(pop._u), _np(pop._logp_b), _np(pop._value_b), _np(pop._raw_b),
-            pop._pending,
+            _np(pend.obs), _np(pend.u), _np(pend.logp_b), _np(pend.value_b), _np(pend.raw_b),
+            pend.waiting,
         )  # fmt: skip
         self.cf = np.zeros((K, len(fused.C_NAMES)))
         self.fl = np.zeros((K, len(fused.F_NAMES)), dtype=np.int64)
@@ -82,18 +85,15 @@ class FusedEngine:
         self._no_forced = np.zeros((K, pop.act_dim), np.float32)
 
     def set_constants(self, pop: PopulationLearner, k: int, cfg: OnlineConfig) -> None:
-        """Member k's rows of the constants matrices, from what write_constants wrote."""
-        c, c64, b, nps = pop._c, pop._c64, pop._b, pop._np
-        values = {n: float(c[n][k]) for n in c}
-        values.update({n: float(c64[n][k]) for n in c64})
-        values.update({n: float(nps[n][k]) for n in ("beta1", "beta2", "lr", "ams_decay")})
-        values["beta2_f32"] = float(c["beta2"][k])
-        values.update(eps=cfg.eps, beta=cfg.beta, eta=cfg.eta)
-        self.cf[k] = [values[n] for n in fused.C_NAMES]
-        flags = {n: int(bool(b[n][k])) for n in b}
-        flags["ams_raw"] = int(nps["ams_raw"][k] > 0)
-        flags["method"] = fused.METHOD_CODES[(cfg.method, cfg.rpe_form)]
-        self.fl[k] = [flags[n] for n in fused.F_NAMES]
+        """Member k's rows of the constants matrices, from what MemberConstants.write wrote
+        (the columns are named as its fields), with the surrogate's settings."""
+        co = pop.consts
+        surrogate = {"eps": cfg.eps, "beta": cfg.beta, "eta": cfg.eta}
+        self.cf[k] = [surrogate[n] if n in surrogate else float(getattr(co, n)[k])
+                      for n in fused.C_NAMES]  # fmt: skip
+        method = fused.METHOD_CODES[(cfg.method, cfg.rpe_form)]
+        self.fl[k] = [method if n == "method" else int(bool(getattr(co, n)[k]))
+                      for n in fused.F_NAMES]  # fmt: skip
 
     def step(
         self,

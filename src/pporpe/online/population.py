@@ -39,6 +39,7 @@ per member; packing (K, slot) changes results only by float rounding.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -51,8 +52,8 @@ from ..nn.mlp import mlp
 from ..nn.policies import ActionMap, PolicyHead, StudentTHead, make_head
 from ..surrogates import surrogate_objective
 from .config import ENGINES, OnlineConfig
-from .member_state import load_member_state, member_state, write_constants
 from .noise import NoiseBank, polar_normal, polar_student_t
+from .state import MemberConstants, PopulationState
 from .stats import StepStats
 from .update import (
     opt_scalars,
@@ -62,7 +63,10 @@ from .update import (
     update_target,
 )
 
-__all__ = ["ENGINES", "SHARED_FIELDS", "PopulationLearner", "StepStats"]
+__all__ = [
+    "ENGINES", "SHARED_FIELDS", "MemberConstants", "PopulationLearner", "PopulationState",
+    "StepStats",
+]  # fmt: skip
 
 
 SHARED_FIELDS: tuple[str, ...] = (
@@ -71,8 +75,35 @@ SHARED_FIELDS: tuple[str, ...] = (
 )  # fmt: skip
 """Config fields every member must share (they fix the network shape and its head)."""
 
-SIGMA2_INIT = 1e-2
-"""t-soft ``sigma2`` initial value: TSoftUpdate's default."""
+
+@dataclass(frozen=True)
+class _Forward:
+    """One step's forward pass: rows s_t (index 0) and s_{t+1} (index 1)."""
+
+    raw: Tensor
+    """``[K, 2, raw_dim]`` policy outputs."""
+    values: Tensor
+    """``[K, 2]`` V(s_t), V(s_{t+1}) of the online value network."""
+    next_target: Tensor
+    """``[K]`` the target network's V(s_{t+1})."""
+    cache: Any
+    """What the hand backward needs of the forward pass."""
+
+
+@dataclass(frozen=True)
+class _PolicySignal:
+    """The policy's side of one step at s_t."""
+
+    adv: Tensor
+    """``[K]`` the regularised advantage A."""
+    ratio: Tensor
+    """``[K]`` rho = pi(u_t | s_t) / pi_b(u_t | s_t)."""
+    log_ratio: Tensor
+    """``[K]`` log rho."""
+    d_raw: Tensor
+    """``[K, raw_dim]`` d(-sigma obj) / d raw (or the weighted score's)."""
+    rho_dagger: Tensor
+    """``[K]`` the surrogate's effective ratio sigma obj(rho, sigma), detached."""
 
 
 def _as_index(members: Sequence[int] | Tensor | np.ndarray, k: int) -> np.ndarray:
@@ -81,6 +112,33 @@ def _as_index(members: Sequence[int] | Tensor | np.ndarray, k: int) -> np.ndarra
     if idx.size and (idx.min() < 0 or idx.max() >= k or len(set(idx.tolist())) != idx.size):
         raise ValueError(f"members must be distinct indices in [0, {k}); got {idx.tolist()}")
     return idx
+
+
+def _check_inputs(
+    obs_dim: Any, configs: list[OnlineConfig], seeds: list[int], engine: str | None
+) -> str:
+    """The engine to use; ValueError naming a bad obs_dim, engine or seed count."""
+    if engine is None:  # the members' own choice (they share it: SHARED_FIELDS)
+        engine = getattr(next(iter(configs), None), "engine", "torch")
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}; got engine={engine!r}")
+    if not (isinstance(obs_dim, int) and obs_dim >= 1):
+        raise ValueError(f"obs_dim must be an int >= 1; got obs_dim={obs_dim!r}")
+    if not configs or len(configs) != len(seeds):
+        raise ValueError(
+            f"need as many seeds as configs (>= 1); got {len(configs)} and {len(seeds)}"
+        )
+    return str(engine)
+
+
+def _update_functions(compile_update: bool) -> tuple[Callable[..., Tensor], Callable[..., None]]:
+    """The elementwise update and the target update, compiled or eager."""
+    if not compile_update:
+        return update_chunk, update_target
+    # one compiled update per population shape; a long-lived worker meets several shapes,
+    # and past dynamo's default limit (8) it would fall back to eager
+    torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
+    return torch.compile(update_chunk, dynamic=False), torch.compile(update_target, dynamic=False)
 
 
 class PopulationLearner:
@@ -115,19 +173,9 @@ class PopulationLearner:
         cache_bytes: int = 4 * 2**20,
         engine: str | None = None,
     ) -> None:
-        if engine is None:  # the members' own choice (they share it: SHARED_FIELDS)
-            engine = getattr(next(iter(configs), None), "engine", "torch")
-        if engine not in ENGINES:
-            raise ValueError(f"engine must be one of {list(ENGINES)}; got engine={engine!r}")
-        self.engine = engine
-        self._fused: Any = None
-        if not (isinstance(obs_dim, int) and obs_dim >= 1):
-            raise ValueError(f"obs_dim must be an int >= 1; got obs_dim={obs_dim!r}")
         configs, seeds = list(configs), list(seeds)
-        if not configs or len(configs) != len(seeds):
-            raise ValueError(
-                f"need as many seeds as configs (>= 1); got {len(configs)} and {len(seeds)}"
-            )
+        engine = _check_inputs(obs_dim, configs, seeds, engine)
+        self.engine = engine
         self.shape_config = configs[0]
         for cfg in configs:
             self._check_shape(cfg)
@@ -145,87 +193,35 @@ class PopulationLearner:
         self.lay = lay = NetLayout(
             obs_dim, self.head.raw_dim, c0.layers, c0.units, c0.layer_norm, head_parts=parts
         )
-        R, U, S = lay.n_rows, lay.units, lay.n_seg
-        self.P = torch.zeros(3, K, R, U)
-        """Parameters: policy, value and target networks of every member."""
-        self.G, self.e, self.r, self.v, self.vmax_s, self.m = (
-            torch.zeros(2, K, R, U) for _ in range(6)
-        )
-        self.W_opt = torch.zeros(2, K, S)
-        self.num = torch.ones(2, K, S)
-        self.den = torch.zeros(2, K, S)
-        self.D = torch.zeros(K)
-        self.decay = torch.ones(K)
-        self.ts_W = torch.zeros(K, dtype=torch.float64)
-        self.ts_sigma2 = torch.zeros(K, dtype=torch.float64)
-        self.steps = np.zeros(K, dtype=np.int64)
+        self.state = PopulationState.zeros(K, lay, self.act_dim)
+        """What changes while the members learn (:class:`PopulationState`)."""
+        self.consts = MemberConstants.zeros(K, lay)
+        """What each member's config fixes (:class:`MemberConstants`)."""
         self.noise = NoiseBank(K, self.act_dim, noise_block)
-        # per-member constants
-        self._c = {
-            n: torch.zeros(K)
-            for n in [
-                "reward_scale",
-                "gamma",
-                "one_m_gamma",
-                "beta_td",
-                "beta_de",
-                "neg_kappa",
-                "gl1",
-                "gl2",
-                "beta2",
-                "one_m_beta2",
-                "opt_eps",
-                "omb_mom",
-                "w_coef",
-                "td_scale",
-            ]
-        }
-        self._c64 = {n: torch.zeros(K, dtype=torch.float64) for n in ("tau", "nu", "sigma2_min")}
-        flags = (
-            "kappa_pos", "mom_only", "polyak", "pre_squash", "critic_actor", "kl_analytic",
-            "weighted_score", "limit_terminal",
-        )  # fmt: skip
-        self._b = {n: torch.zeros(K, dtype=torch.bool) for n in (*flags, "ln_frozen")}
-        self._np = {n: np.zeros(K) for n in ("beta1", "beta2", "lr", "ams_decay", "ams_raw")}
-        self._norm_keep = torch.ones(K, lay.n_rows)  # 0 on frozen LayerNorm rows
         self.configs: list[OnlineConfig] = list(configs)
         self._groups: list[tuple[tuple[Any, ...], Tensor]] = []
-        # pending transition state
-        self._obs = torch.zeros(K, obs_dim)
-        self._u = torch.zeros(K, self.act_dim)
-        self._logp_b = torch.zeros(K)
-        self._value_b = torch.zeros(K)
-        self._raw_b = torch.zeros(K, self.head.raw_dim)  # pi_b's raw output at s_t
-        self._pending = np.zeros(K, dtype=bool)
-        self._row_seg = lay.row_seg
+        self._fused: Any = None
         if engine == "fused":
             from .fused_engine import FusedEngine
 
             self._fused = FusedEngine(self)
             compile_update = False
-        self._upd: Callable[..., Tensor] = update_chunk
-        self._tgt: Callable[..., None] = update_target
-        if compile_update:
-            # one compiled update per population shape; a long-lived worker meets several
-            # shapes, and past dynamo's default limit (8) it would fall back to eager
-            torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
-            self._upd = torch.compile(update_chunk, dynamic=False)
-            self._tgt = torch.compile(update_target, dynamic=False)
-        # members are updated in blocks whose state (~10 parameter-sized vectors) fits in
-        # about `cache_bytes` of cache; every block but the last has the same shape
-        per_member = 10 * 2 * lay.n_pad * 4
-        size = max(1, min(K, cache_bytes // per_member))
-        self._blocks = [(a, min(a + size, K)) for a in range(0, K, size)]
-        self._block_state = [
-            tuple(
-                buf[:, a:b]
-                for buf in (self.P, self.G, self.e, self.r, self.v, self.vmax_s, self.m, self.W_opt)
-            )
-            for a, b in self._blocks
-        ]
-        self._block_consts = [(self.num[:, a:b], self.den[:, a:b]) for a, b in self._blocks]
+        self._upd, self._tgt = _update_functions(compile_update)
+        self._make_blocks(cache_bytes)
         for k, (cfg, seed) in enumerate(zip(configs, seeds, strict=True)):
             self.reset_member(k, cfg, seed)
+
+    def _make_blocks(self, cache_bytes: int) -> None:
+        """Members are updated in blocks whose state (~10 parameter-sized vectors) fits in
+        about ``cache_bytes`` of cache; every block but the last has the same shape."""
+        K, st, co = self.K, self.state, self.consts
+        per_member = 10 * 2 * self.lay.n_pad * 4
+        size = max(1, min(K, cache_bytes // per_member))
+        self._blocks = [(a, min(a + size, K)) for a in range(0, K, size)]
+        buffers = (st.params, st.grad, st.trace_e, st.trace_r, st.opt_v, st.opt_vmax, st.opt_m,
+                   st.opt_weight)  # fmt: skip
+        self._block_state = [tuple(buf[:, a:b] for buf in buffers) for a, b in self._blocks]
+        self._block_consts = [(co.seg_num[:, a:b], co.seg_den[:, a:b]) for a, b in self._blocks]
 
     # -- configuration -------------------------------------------------------------------
     def _check_shape(self, cfg: OnlineConfig) -> None:
@@ -243,7 +239,7 @@ class PopulationLearner:
         """Write member k's constants (everything but its state)."""
         self._check_shape(cfg)
         self.configs[k] = cfg
-        write_constants(self, k, cfg)
+        self.consts.write(k, cfg, self.lay)
         if self._fused is not None:
             self._fused.set_constants(self, k, cfg)
         groups: dict[tuple[Any, ...], list[int]] = {}
@@ -277,24 +273,17 @@ class PopulationLearner:
             val = mlp(self.obs_dim, 1, **kw)  # type: ignore[arg-type]
         R, U = self.lay.n_rows, self.lay.units
         with torch.no_grad():
-            self.P[0, k] = self.lay.pack(list(pol.parameters()), 0).view(R, U)
-            self.P[1, k] = self.lay.pack(list(val.parameters()), 1).view(R, U)
-            self.P[2, k] = self.P[1, k]
-            for buf in (self.G, self.e, self.r, self.v, self.vmax_s, self.m):
-                buf[:, k] = 0.0
-            beta1 = config.opt_betas[0]
-            self.W_opt[:, k] = beta1 / (1.0 - beta1)
-            self.D[k], self.decay[k] = 0.0, 1.0
-            self.ts_W[k] = (1.0 - config.tau) / config.tau
-            self.ts_sigma2[k] = SIGMA2_INIT
-        self.steps[k] = 0
+            params = self.state.params
+            params[0, k] = self.lay.pack(list(pol.parameters()), 0).view(R, U)
+            params[1, k] = self.lay.pack(list(val.parameters()), 1).view(R, U)
+            params[2, k] = params[1, k]
+        self.state.reset_member(k, config)
         self.noise.reset(k, seed)
-        self._pending[k] = False
 
     # -- parameters -------------------------------------------------------------------
     def member_theta(self, k: int) -> Tensor:
         """Member k's flat parameters in OnlineLearner.theta's layout (a new tensor)."""
-        flat = self.P[:2, k].reshape(2, -1)
+        flat = self.state.params[:2, k].reshape(2, -1)
         pi, vi = self.lay.real_index
         return torch.cat([flat[0, pi], flat[1, vi]])
 
@@ -305,19 +294,19 @@ class PopulationLearner:
         pi, vi = self.lay.real_index
         if theta.numel() != len(pi) + len(vi):
             raise ValueError(f"theta must have {len(pi) + len(vi)} elements; got {theta.numel()}")
-        flat = self.P[:, k].reshape(3, -1)
+        flat = self.state.params[:, k].reshape(3, -1)
         flat[0, pi] = theta[: len(pi)]
         flat[1, vi] = theta[len(pi) :]
         flat[2, vi] = theta[len(pi) :]
-        self.P[:, k] = flat.view_as(self.P[:, k])
+        self.state.params[:, k] = flat.view_as(self.state.params[:, k])
 
     def member_target(self, k: int) -> Tensor:
         """Member k's target value network in OnlineLearner.target's layout."""
-        return self.P[2, k].reshape(-1)[self.lay.real_index[1]]
+        return self.state.params[2, k].reshape(-1)[self.lay.real_index[1]]
 
     def finite(self) -> Tensor:
         """``[K]`` bool: all of the member's parameters and target are finite."""
-        return torch.isfinite(self.P).flatten(2).all(-1).all(0)
+        return torch.isfinite(self.state.params).flatten(2).all(-1).all(0)
 
     # -- acting ---------------------------------------------------------------------------
     def _sample(self, raw: Tensor, pts: Tensor) -> Tensor:
@@ -331,7 +320,7 @@ class PopulationLearner:
         return loc + scale * t.to(loc.dtype)
 
     def _flat(self, n_kinds: int) -> Tensor:
-        return self.P[:n_kinds].view(n_kinds * self.K, self.lay.n_pad)
+        return self.state.params[:n_kinds].view(n_kinds * self.K, self.lay.n_pad)
 
     @torch.no_grad()
     def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
@@ -347,7 +336,7 @@ class PopulationLearner:
     @torch.no_grad()
     def policy_raw(self, k: int, x: Tensor) -> Tensor:
         """Member ``k``'s policy output ``[N, raw_dim]`` for observations ``[N, obs_dim]``."""
-        flat = self.P[0, k].view(1, self.lay.n_pad)
+        flat = self.state.params[0, k].view(1, self.lay.n_pad)
         raw, _ = forward_chain(flat, x.reshape(1, -1, self.obs_dim), self.lay, self.activation)
         return raw[0]
 
@@ -358,7 +347,7 @@ class PopulationLearner:
             obs2 = np.asarray(obs, np.float32).reshape(self.K, self.obs_dim)
             return self._fused.forward(1, obs2, 1)[:, 0]
         x = torch.as_tensor(np.asarray(obs, np.float32)).reshape(self.K, 1, self.obs_dim)
-        values = self.P[1].view(self.K, self.lay.n_pad)
+        values = self.state.params[1].view(self.K, self.lay.n_pad)
         out, _ = forward_chain(values, x, self.lay, self.activation)
         return out[:, 0, 0].numpy()
 
@@ -379,7 +368,7 @@ class PopulationLearner:
         K = self.K
         if self._fused is not None:
             return self._begin_fused(idx, ti, obs, forced_u)
-        x = self._obs.clone()
+        x = self.state.pending.obs.clone()
         x[ti] = torch.as_tensor(np.asarray(obs, np.float32)).reshape(len(idx), self.obs_dim)
         xx = x.unsqueeze(1).repeat(2, 1, 1)
         out, _ = forward_chain(self._flat(2), xx, self.lay, self.activation)
@@ -390,15 +379,12 @@ class PopulationLearner:
             u = self._sample(raw, self.noise.take(mask))[ti]
         else:
             u = torch.as_tensor(forced_u, dtype=torch.float32).reshape(len(idx), self.act_dim)
-        for buf in (self.e, self.r):
-            buf[:, ti] = 0.0
-        self.D[ti], self.decay[ti] = 0.0, 1.0
-        self._obs[ti] = x[ti]
-        self._u[ti] = u
-        self._logp_b[ti] = self.head.log_prob(raw[ti], u)
-        self._value_b[ti] = value[ti]
-        self._raw_b[ti] = raw[ti]
-        self._pending[idx] = True
+        self.state.reset_traces(ti)
+        pend = self.state.pending
+        pend.obs[ti], pend.u[ti] = x[ti], u
+        pend.logp_b[ti], pend.value_b[ti] = self.head.log_prob(raw[ti], u), value[ti]
+        pend.raw_b[ti] = raw[ti]
+        pend.waiting[idx] = True
         return self.action_map.to_action(u).numpy()
 
     # -- learning -------------------------------------------------------------------------
@@ -422,7 +408,7 @@ class PopulationLearner:
                 value = surrogate_objective(method, ratio, sigma, eps, beta, eta, form)
                 obj = torch.where(mask, value, obj)
         rho_dagger = (sigma * obj).detach()
-        loss = torch.where(self._b["weighted_score"], -rho_dagger * logp, -sigma * obj)
+        loss = torch.where(self.consts.weighted_score, -rho_dagger * logp, -sigma * obj)
         (grad,) = torch.autograd.grad(loss.sum(), raw0)
         return grad, rho_dagger
 
@@ -443,117 +429,141 @@ class PopulationLearner:
         ``forced_u`` (test hook): pre-map next actions ``[K, act_dim]`` used instead of
         samples (no noise consumed).
         """
-        K, lay = self.K, self.lay
+        K = self.K
         act_np = np.ones(K, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        if not self._pending[act_np].all():
-            missing = np.nonzero(act_np & ~self._pending)[0].tolist()
+        if not self.state.pending.waiting[act_np].all():
+            missing = np.nonzero(act_np & ~self.state.pending.waiting)[0].tolist()
             raise RuntimeError(f"call begin_episode for members {missing} before step()")
         if self._fused is not None:
             return self._step_fused(reward, next_obs, terminated, truncated, act_np, forced_u)
         term_np = np.asarray(terminated, dtype=bool).reshape(K)
         trunc_np = np.asarray(truncated, dtype=bool).reshape(K)
-        done_np = term_np | trunc_np
-        act = torch.from_numpy(act_np.copy())
-        c = self._c
         rew = torch.as_tensor(np.asarray(reward, np.float32)).reshape(K)
         nxt = torch.as_tensor(np.asarray(next_obs, np.float32)).reshape(K, self.obs_dim)
-        x = torch.stack([self._obs, nxt], 1)  # [K, 2, obs]: [s_t; s_{t+1}]
-        out, cache = forward_chain(self._flat(3), x.repeat(3, 1, 1), lay, self.activation, 2 * K)
-        assert cache is not None
-        raw, values, next_target = out[:K], out[K : 2 * K, :, 0], out[2 * K :, 1, 0]
-        v = values[:, 0]
-        # no bootstrap past a termination, nor past a time limit for "terminal" members
-        ends = torch.from_numpy(term_np.copy()) | (
-            torch.from_numpy(trunc_np.copy()) & self._b["limit_terminal"]
-        )
-        bootstrap = torch.where(ends, 0.0, c["gamma"])
-        delta = td_error(rew * c["reward_scale"], next_target, v, bootstrap)
-        raw0 = raw[:, 0].detach().requires_grad_(True)
-        with torch.enable_grad():
-            logp = self.head.log_prob(raw0, self._u)
-            log_ratio_g = logp - self._logp_b
-            ratio_g = torch.exp(log_ratio_g)
-            # entropy term: the density of the bounded action a = f(u) (map Jacobian
-            # included), or of u itself ("pre_squash")
-            jac = self.action_map.log_abs_det_jacobian(self._u)
-            logp_entropy = logp.detach() - torch.where(self._b["pre_squash"], 0.0, jac)
-            adv = regularized_advantage(
-                delta, logp_entropy, c["one_m_gamma"], c["beta_td"], c["beta_de"], c["td_scale"]
-            )
-            sigma = torch.where(adv >= 0, 1.0, -1.0)
-            d_raw, rho_dagger = self._head_grad(raw0, logp, ratio_g, sigma)
-        log_ratio, ratio = log_ratio_g.detach(), ratio_g.detach()
-        divergence = (ratio - 1.0 - log_ratio) + (v - self._value_b) ** 2
-        if self._b["kl_analytic"].any():
-            kl = torch.relu(self.head.kl(raw[:, 0], self._raw_b))
-            analytic = kl + 0.5 * (v - self._value_b) ** 2
-            divergence = torch.where(self._b["kl_analytic"], analytic, divergence)
-        critic_actor = self._b["critic_actor"]
-        dout = torch.zeros(2 * K, lay.raw_dim)
-        dout[:K] = d_raw
-        # d(-w V(s_t)) / dV: w = 1 (TD signal) or rho_dagger (the actor's weight)
-        dout[K:, 0] = torch.where(critic_actor, -rho_dagger, -1.0)
-        backward_row0(
-            self._flat(2), self.G.view(2 * K, lay.n_pad), dout, cache, lay, self.activation
-        )
-        if self._b["ln_frozen"].any():  # LayerNorm without learnt scale and shift
-            self.G.mul_(self._norm_keep.view(1, K, lay.n_rows, 1))
-
-        # a_{t+1} from theta_t, before the update (the step order above)
-        raw1 = raw[:, 1]
+        fwd = self._forward_transition(nxt)
+        delta = self._td_error(rew, fwd, term_np, trunc_np)
+        sig = self._policy_signal(fwd, delta)
+        divergence = self._trace_divergence(fwd, sig)
+        self._backward(fwd, sig)
+        # a_{t+1} from theta_t, before the update (the step order of the module docstring)
+        raw1 = fwd.raw[:, 1]
         if forced_u is None:
             u_next = self._sample(raw1, self.noise.take(act_np))
         else:
             u_next = torch.as_tensor(forced_u, dtype=torch.float32).reshape(K, self.act_dim)
-        logp_b_next = self.head.log_prob(raw1, u_next)
+        self._update(sig.adv, delta, divergence, act_np)
+        stats = StepStats(delta, sig.adv, sig.ratio, divergence, self.state.decay.clone())
+        self._advance_pending(nxt, u_next, fwd, act_np & ~(term_np | trunc_np), act_np)
+        return stats, self.action_map.to_action(u_next).numpy()
 
+    def _forward_transition(self, nxt: Tensor) -> _Forward:
+        """One forward pass of the 3K networks over ``[s_t; s_{t+1}]``."""
+        K = self.K
+        x = torch.stack([self.state.pending.obs, nxt], 1)  # [K, 2, obs]: [s_t; s_{t+1}]
+        out, cache = forward_chain(
+            self._flat(3), x.repeat(3, 1, 1), self.lay, self.activation, 2 * K
+        )
+        assert cache is not None
+        return _Forward(out[:K], out[K : 2 * K, :, 0], out[2 * K :, 1, 0], cache)
+
+    def _td_error(
+        self, rew: Tensor, fwd: _Forward, term_np: np.ndarray, trunc_np: np.ndarray
+    ) -> Tensor:
+        """delta; no bootstrap past a termination, nor past a time limit for members
+        with ``time_limit="terminal"``."""
+        co = self.consts
+        ends = torch.from_numpy(term_np.copy()) | (
+            torch.from_numpy(trunc_np.copy()) & co.limit_terminal
+        )
+        bootstrap = torch.where(ends, 0.0, co.gamma)
+        return td_error(rew * co.reward_scale, fwd.next_target, fwd.values[:, 0], bootstrap)
+
+    def _policy_signal(self, fwd: _Forward, delta: Tensor) -> _PolicySignal:
+        """The regularised advantage, the ratio and the head's gradient at s_t."""
+        co, pend = self.consts, self.state.pending
+        raw0 = fwd.raw[:, 0].detach().requires_grad_(True)
+        with torch.enable_grad():
+            logp = self.head.log_prob(raw0, pend.u)
+            log_ratio = logp - pend.logp_b
+            ratio = torch.exp(log_ratio)
+            # entropy term: the density of the bounded action a = f(u) (map Jacobian
+            # included), or of u itself ("pre_squash")
+            jac = self.action_map.log_abs_det_jacobian(pend.u)
+            logp_entropy = logp.detach() - torch.where(co.pre_squash, 0.0, jac)
+            adv = regularized_advantage(
+                delta, logp_entropy, co.one_m_gamma, co.beta_td, co.beta_de, co.td_scale
+            )
+            sigma = torch.where(adv >= 0, 1.0, -1.0)
+            d_raw, rho_dagger = self._head_grad(raw0, logp, ratio, sigma)
+        return _PolicySignal(adv, ratio.detach(), log_ratio.detach(), d_raw, rho_dagger)
+
+    def _trace_divergence(self, fwd: _Forward, sig: _PolicySignal) -> Tensor:
+        """The divergence of this step that drives the adaptive trace decay."""
+        pend, v = self.state.pending, fwd.values[:, 0]
+        divergence = (sig.ratio - 1.0 - sig.log_ratio) + (v - pend.value_b) ** 2
+        if self.consts.kl_analytic.any():
+            kl = torch.relu(self.head.kl(fwd.raw[:, 0], pend.raw_b))
+            analytic = kl + 0.5 * (v - pend.value_b) ** 2
+            divergence = torch.where(self.consts.kl_analytic, analytic, divergence)
+        return divergence
+
+    def _backward(self, fwd: _Forward, sig: _PolicySignal) -> None:
+        """The per-unit-signal gradient of row s_t into ``state.grad`` (hand backward)."""
+        K, lay = self.K, self.lay
+        dout = torch.zeros(2 * K, lay.raw_dim)
+        dout[:K] = sig.d_raw
+        # d(-w V(s_t)) / dV: w = 1 (TD signal) or rho_dagger (the actor's weight)
+        dout[K:, 0] = torch.where(self.consts.critic_actor, -sig.rho_dagger, -1.0)
+        grad = self.state.grad
+        backward_row0(self._flat(2), grad.view(2 * K, lay.n_pad), dout, fwd.cache, lay,
+                      self.activation)  # fmt: skip
+        if self.consts.ln_frozen.any():  # LayerNorm without learnt scale and shift
+            grad.mul_(self.consts.norm_keep.view(1, K, lay.n_rows, 1))
+
+    def _update(self, adv: Tensor, delta: Tensor, divergence: Tensor, act_np: np.ndarray) -> None:
+        """Traces, td-AmsProp (in cache-sized blocks of members) and the t-soft target."""
+        st, co, lay = self.state, self.consts, self.lay
+        act = torch.from_numpy(act_np.copy())
         c1, c2 = trace_scalars(
-            self.D, self.decay, divergence, c["neg_kappa"], self._b["kappa_pos"],
-            c["gl1"], c["gl2"], act,
+            st.trace_divergence, st.decay, divergence, co.neg_kappa, co.kappa_pos, co.gl1,
+            co.gl2, act,
         )  # fmt: skip
-        self.steps += act_np.astype(np.int64)
-        scal = opt_scalars(self.steps, self._np)
+        st.steps[:] += act_np.astype(np.int64)
+        vfac, sqrt_bc2, step = opt_scalars(st.steps, co.beta1, co.beta2, co.lr, co.ams_decay,
+                                           co.ams_raw)  # fmt: skip
         # A on the policy block; delta (or A, with the actor's weight) on the value block
-        signal = torch.stack([adv, torch.where(critic_actor, adv, delta)])
-        per_member = (
-            c1, c2, c["beta2"], c["one_m_beta2"], scal[0], scal[1], c["opt_eps"],
-            self._b["mom_only"], c["omb_mom"], c["w_coef"],
-        )  # fmt: skip
+        signal = torch.stack([adv, torch.where(co.critic_actor, adv, delta)])
+        per_member = (c1, c2, co.beta2_f32, co.one_m_beta2, vfac, sqrt_bc2, co.opt_eps,
+                      co.mom_only, co.omb_mom, co.w_coef)  # fmt: skip
         d2s = []
         for (a, b), state, (num, den) in zip(
             self._blocks, self._block_state, self._block_consts, strict=True
         ):
             pm = [x[a:b] for x in per_member]
-            d2s.append(
-                self._upd(
-                    *state,
-                    signal[:, a:b],
-                    *pm,
-                    num,
-                    den,
-                    scal[2][a:b],
-                    act[a:b],
-                    self._row_seg,
-                    lay.col_seg,
-                    lay.bias_row,
-                )
-            )
+            d2s.append(self._upd(*state, signal[:, a:b], *pm, num, den, step[a:b], act[a:b],
+                                 lay.row_seg, lay.col_seg, lay.bias_row))  # fmt: skip
         d2 = d2s[0] if len(d2s) == 1 else torch.cat(d2s)
         rate = tsoft_rates(
-            d2, float(lay.n_real[1]), self.ts_W, self.ts_sigma2, self._c64["tau"],
-            self._c64["nu"], self._b["polyak"], self._c64["sigma2_min"], act,
+            d2, float(lay.n_real[1]), st.tsoft_weight, st.tsoft_sigma2, co.tau, co.nu,
+            co.polyak, co.sigma2_min, act,
         )  # fmt: skip
-        self._tgt(self.P, rate, act)
+        self._tgt(st.params, rate, act)
 
-        stats = StepStats(delta, adv, ratio, divergence, self.decay.clone())
-        cont = torch.from_numpy(act_np & ~done_np)
-        self._obs = torch.where(cont.view(K, 1), nxt, self._obs)
-        self._u = torch.where(cont.view(K, 1), u_next, self._u)
-        self._logp_b = torch.where(cont, logp_b_next, self._logp_b)
-        self._value_b = torch.where(cont, values[:, 1], self._value_b)
-        self._raw_b = torch.where(cont.view(K, 1), raw1.detach(), self._raw_b)
-        self._pending &= ~(act_np & done_np)
-        return stats, self.action_map.to_action(u_next).numpy()
+    def _advance_pending(
+        self, nxt: Tensor, u_next: Tensor, fwd: _Forward, cont_np: np.ndarray, act_np: np.ndarray
+    ) -> None:
+        """Members that go on hold (s_{t+1}, u_{t+1}) as their pending transition, with
+        theta_t's numbers at s_{t+1} as pi_b's; members that ended hold nothing."""
+        pend, K = self.state.pending, self.K
+        cont = torch.from_numpy(cont_np)
+        raw1 = fwd.raw[:, 1].detach()
+        logp_b_next = self.head.log_prob(raw1, u_next)
+        pend.obs.copy_(torch.where(cont.view(K, 1), nxt, pend.obs))
+        pend.u.copy_(torch.where(cont.view(K, 1), u_next, pend.u))
+        pend.logp_b.copy_(torch.where(cont, logp_b_next, pend.logp_b))
+        pend.value_b.copy_(torch.where(cont, fwd.values[:, 1], pend.value_b))
+        pend.raw_b.copy_(torch.where(cont.view(K, 1), raw1, pend.raw_b))
+        pend.waiting[:] &= cont_np | ~act_np
 
     # -- the fused engine ---------------------------------------------------------------
     def _begin_fused(
@@ -567,9 +577,7 @@ class PopulationLearner:
             mask[idx] = True
             pts = self.noise.take(mask).numpy()
         forced = None if forced_u is None else np.asarray(forced_u, np.float32)
-        for buf in (self.e, self.r):
-            buf[:, ti] = 0.0
-        self.D[ti], self.decay[ti] = 0.0, 1.0
+        self.state.reset_traces(ti)
         return self._fused.begin(idx, x, self._no_points() if pts is None else pts, forced)
 
     def _no_points(self) -> np.ndarray:
@@ -602,12 +610,30 @@ class PopulationLearner:
 
     # -- state ----------------------------------------------------------------------------
     def member_state(self, k: int) -> dict[str, Any]:
-        """Everything needed to continue member k at an episode boundary (cloned tensors).
-
-        With the pending transition, so a member can be continued mid-episode too.
-        """
-        return member_state(self, k)
+        """Everything needed to continue member k (cloned tensors): its slice of
+        :attr:`state` (:meth:`PopulationState.member`, the pending transition included, so
+        a member can be continued mid-episode too) and its noise stream (``"rng"``)."""
+        return {**self.state.member(k), "rng": self.noise.state(k)}
 
     def load_member_state(self, k: int, config: OnlineConfig, state: dict[str, Any]) -> None:
-        """Restore :meth:`member_state` into slot k with ``config`` (and its pending step)."""
-        load_member_state(self, k, config, state)
+        """Restore :meth:`member_state` into slot k with ``config`` (and its pending step).
+
+        Continues the member bitwise when the packing (K, slot) is the same, up to
+        rounding otherwise. Older checkpoints' extra entries (a flat ``theta``) are
+        ignored."""
+        self._set_config(k, config)
+        self.state.load_member(k, state, needs_raw_b=config.trace_divergence == "analytic")
+        self.noise.load(k, state["rng"])
+
+    def state_dict(self) -> dict[str, Any]:
+        """The whole population: :meth:`PopulationState.state_dict` and the noise streams."""
+        return {"state": self.state.state_dict(),
+                "rng": [self.noise.state(k) for k in range(self.K)]}  # fmt: skip
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` into a population built with the same configs."""
+        if len(state["rng"]) != self.K:
+            raise ValueError(f"state_dict holds {len(state['rng'])} members; this has {self.K}")
+        self.state.load_state_dict(state["state"])
+        for k, rng in enumerate(state["rng"]):
+            self.noise.load(k, rng)

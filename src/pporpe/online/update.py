@@ -280,22 +280,30 @@ def update_target(P: Tensor, rate: Tensor, active: Tensor) -> None:
     P[2].copy_(torch.where(active.view(-1, 1, 1), new, tgt))
 
 
-def opt_scalars(steps: np.ndarray, consts: dict[str, np.ndarray]) -> tuple[Tensor, Tensor, Tensor]:
+def opt_scalars(
+    steps: np.ndarray,
+    beta1: np.ndarray,
+    beta2: np.ndarray,
+    lr: np.ndarray,
+    ams_decay: np.ndarray,
+    ams_raw: np.ndarray,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Bias-correction scalars of td-AmsProp per member, in float64 as TDAmsProp computes them.
 
-    ``steps`` are the members' step counts t (already advanced); ``consts`` holds ``beta1``,
-    ``beta2``, ``lr`` and ``ams_decay`` arrays. Returns float32 ``[K]`` tensors ``vfac``
+    ``steps`` are the members' step counts t (already advanced); ``beta1``, ``beta2``,
+    ``lr``, ``ams_decay`` (float64) and ``ams_raw`` (bool: the maximum of the raw moment)
+    are ``[K]`` arrays of the members' constants. Returns float32 ``[K]`` tensors ``vfac``
     (``decay * bc2_t / bc2_{t-1}``, 1 at t = 1, 0 when the maximum is off), ``sqrt(bc2)``
     and ``lr / bc1``.
     """
     t = np.maximum(steps, 1).astype(np.float64)
-    bc1 = 1.0 - consts["beta1"] ** t
-    bc2 = 1.0 - consts["beta2"] ** t
-    bc2_prev = np.where(t > 1, 1.0 - consts["beta2"] ** (t - 1), 1.0)
+    bc1 = 1.0 - beta1**t
+    bc2 = 1.0 - beta2**t
+    bc2_prev = np.where(t > 1, 1.0 - beta2 ** (t - 1), 1.0)
     # the maximum of the bias-corrected moment (vmax_s is stored scaled by bc2), or of the
     # raw moment, bias-corrected after (ams_raw)
-    ratio = np.where(consts["ams_raw"] > 0, 1.0, bc2 / bc2_prev)
-    vfac = np.where(t > 1, consts["ams_decay"] * ratio, 1.0)
-    vfac = np.where(consts["ams_decay"] > 0, vfac, 0.0)
-    out = torch.from_numpy(np.stack([vfac, np.sqrt(bc2), consts["lr"] / bc1]).astype(np.float32))
+    ratio = np.where(ams_raw, 1.0, bc2 / bc2_prev)
+    vfac = np.where(t > 1, ams_decay * ratio, 1.0)
+    vfac = np.where(ams_decay > 0, vfac, 0.0)
+    out = torch.from_numpy(np.stack([vfac, np.sqrt(bc2), lr / bc1]).astype(np.float32))
     return out[0], out[1], out[2]
