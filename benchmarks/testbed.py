@@ -159,38 +159,62 @@ def run_reference(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def run_pporpe(args: argparse.Namespace) -> int:
-    """pporpe's learner with ``args.config``'s settings, the seeds as one population (the
-    grid machinery: checkpoints, resume), then one result file per finished seed."""
-    sys.path.insert(0, str(HERE))
+def pporpe_spec(config: str, args: argparse.Namespace) -> Any:
+    """The grid spec of pporpe's runs with ``config``'s settings for the seeds."""
     from pporpe.experiments.grid import parse_spec
-    from pporpe.experiments.reproduce import reproduce
 
-    settings = settings_for(args.config)
+    settings = settings_for(config)
     method = settings.pop("method")
-    spec = parse_spec(
+    return parse_spec(
         {
-            "name": f"testbed-{args.config}",
+            "name": f"testbed-{config}",
             "methods": [method],
             "seeds": list(args.seeds),
             "eval_episodes": args.tests,
             "learner": {k: list(v) if isinstance(v, tuple) else v for k, v in settings.items()},
             "tasks": [{"env": args.task, "episodes": args.episodes}],
         },
-        f"testbed:{args.config}",
+        f"testbed:{config}",
     )
-    runs = args.root / "pporpe_runs" / args.config
-    outcome = reproduce(spec, runs, workers=1, population=min(args.population, len(args.seeds)))
-    print(
-        f"{len(outcome.done)} done, {len(outcome.failed)} failed, {outcome.wall_time:.0f} s",
-        flush=True,
-    )
-    for seed in args.seeds:
-        export_pporpe_seed(runs / args.task / method / f"seed{seed}", args, seed)
-    return 0
 
 
-def export_pporpe_seed(run_dir: Path, args: argparse.Namespace, seed: int) -> None:
+def run_pporpe(args: argparse.Namespace) -> int:
+    """pporpe's learner with each config's settings for the seeds, then one result file
+    per finished seed. Runs of every config that share a network shape train as one
+    population of up to ``--population`` members (the run loop: checkpoints every minute,
+    a rerun of the same command resumes), so that ``--config testbed+lr testbed+target
+    ...`` costs far less than the configs one after another."""
+    from pporpe.experiments.backends import run_job
+    from pporpe.runs.folder import config_json
+    from pporpe.runs.kinds import kind_of
+
+    groups: dict[Any, list[tuple[str, str, dict[str, Any]]]] = {}
+    for config in args.config:
+        for run in pporpe_spec(config, args).runs:
+            kind = kind_of(run.config)
+            run_dir = args.root / "pporpe_runs" / config / run.key
+            groups.setdefault(kind.pack_key(run.config), []).append(
+                (config, str(run_dir), config_json(kind, run.config))
+            )
+    failed = 0
+    for members in groups.values():
+        configs = list(dict.fromkeys(c for c, _, _ in members))
+        home = args.root / "pporpe_runs" / "populations" / f"{args.task}-{'-'.join(configs)}"
+        if len(configs) == 1 and len(members) > 1:  # where a single config's runs always were
+            home = args.root / "pporpe_runs" / configs[0] / "populations" / args.task
+        size = min(args.population, len(members))
+        print(f"{len(members)} runs of {', '.join(configs)}: population of {size}", flush=True)
+        status = run_job(str(home), [(d, c) for _, d, c in members], size, 60.0)
+        failed += sum(s["status"] != "done" for s in status)
+    for config in args.config:
+        for seed in args.seeds:
+            method = settings_for(config)["method"]
+            run_dir = args.root / "pporpe_runs" / config / args.task / method
+            export_pporpe_seed(run_dir / f"seed{seed}", args, config, seed)
+    return 1 if failed else 0
+
+
+def export_pporpe_seed(run_dir: Path, args: argparse.Namespace, config: str, seed: int) -> None:
     """A finished pporpe run folder as a result file in the test bed's format."""
     from pporpe.io import atomic_write_json
     from pporpe.runs.logger import read_records
@@ -201,12 +225,12 @@ def export_pporpe_seed(run_dir: Path, args: argparse.Namespace, seed: int) -> No
     records = read_records(run_dir / "episodes.csv")
     tests = json.loads((run_dir / "evaluation.json").read_text())["returns"]
     atomic_write_json(
-        result_path("pporpe", args.config, args.task, seed, args.root),
+        result_path("pporpe", config, args.task, seed, args.root),
         {
             "implementation": "pporpe",
             "env": TASKS[args.task],
             "seed": seed,
-            "config": args.config,
+            "config": config,
             "settings": json.loads((run_dir / "config.json").read_text())["learner"],
             "returns": [r.ret for r in records],
             "lengths": [r.length for r in records],
@@ -501,9 +525,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ref.add_argument("--config", choices=SIDE_BY_SIDE, default="testbed")
     own = sub.add_parser("pporpe", help="run pporpe's learner with the test bed's settings")
-    own.add_argument("--config", type=config_arg, default="testbed",
+    own.add_argument("--config", type=config_arg, nargs="+", default=["testbed"],
                      help="testbed, paper, or testbed+GROUP+... (groups: "
-                     f"{', '.join(GROUPS)})")  # fmt: skip
+                     f"{', '.join(GROUPS)}); several share one population")  # fmt: skip
     own.add_argument("--population", type=int, default=10, help="runs trained at once")
     summ = sub.add_parser("summarize", help="tables, figures and summary.json from the files")
     summ.add_argument("--root", type=Path, default=RESULTS, help="folder of the result files")

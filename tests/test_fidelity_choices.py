@@ -10,6 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny import ACT, OBS
+from tiny import baseline_config as cfg
+from tiny import population as pop
 from torch.distributions import Normal, kl_divergence
 
 from pporpe.advantages import regularized_advantage, td_error
@@ -19,20 +22,9 @@ from pporpe.online.config import BASELINE_CHOICES, TESTBED_WEIGHTS, OnlineConfig
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import surrogate_objective
 
+
 # pporpe 0.2's learner choices pinned: the reference learner implements them, and each
 # choice's test compares it against them.
-SMALL = {"layers": 2, "units": 16, "compile": False, **BASELINE_CHOICES}
-OBS, ACT = 3, 2
-
-
-def pop(configs: list[OnlineConfig], seeds: list[int]) -> PopulationLearner:
-    return PopulationLearner(OBS, -np.ones(ACT), np.ones(ACT), configs, seeds, compile_update=False)
-
-
-def cfg(**kw: object) -> OnlineConfig:
-    return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
-
-
 def drive(p: PopulationLearner, steps: int, seed: int = 0, forced: bool = True) -> list:
     """The same transitions (and, with ``forced``, the same actions) for every member."""
     rng = np.random.default_rng(seed)

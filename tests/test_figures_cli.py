@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -74,3 +76,20 @@ def test_saved_figures_carry_no_date_so_the_same_figure_gives_the_same_bytes(
         dated = atomic_savefig(fig, tmp_path / f"c.{ext}", metadata={}).read_bytes()
         assert date_mark in dated  # an explicit metadata argument is left to the caller
     plt.close(fig)
+
+
+def test_report_and_figures_leave_the_matplotlib_backend_alone(tmp_path: Path) -> None:
+    """Importing pporpe's report and drawing its figures neither switches the caller's
+    matplotlib backend nor imports pyplot (a notebook's inline backend stays)."""
+    script = (
+        "import sys, matplotlib\n"
+        "matplotlib.use('svg')\n"
+        "import pporpe.experiments.report, pporpe.experiments.figures as F\n"
+        f"F.draw_analytic_figures({str(tmp_path)!r})\n"
+        "print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out == ["svg", "False"]
+    assert (tmp_path / "negative_loss.png").stat().st_size > 0

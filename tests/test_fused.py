@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from tiny import small_config as cfg
 
 from pporpe.nn.policies import NormalHead, StudentTHead
 from pporpe.online import fused
@@ -18,11 +19,6 @@ from pporpe.surrogates import rpe_surrogate_advantage, surrogate_objective
 torch.set_num_threads(1)
 OBS, ACT = 3, 2
 LOW, HIGH = -np.ones(ACT), np.ones(ACT) * 2.0
-SMALL = {"layers": 2, "units": 16, "compile": False}
-
-
-def cfg(**kw: object) -> OnlineConfig:
-    return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------ closed forms

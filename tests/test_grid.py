@@ -17,14 +17,9 @@ import pytest
 
 from pporpe.cli import main
 from pporpe.experiments.grid import load_spec, parse_spec
+from pporpe.experiments.progress import RECENT_EPISODES, GridProgress, RunProgress, run_progress
 from pporpe.experiments.report import mean_ci, write_report
-from pporpe.experiments.reproduce import (
-    RECENT_EPISODES,
-    RunProgress,
-    _Progress,
-    reproduce,
-    run_progress,
-)
+from pporpe.experiments.reproduce import reproduce
 from pporpe.online import AUTHOR_CHOICES, DEFAULT_CHOICES
 from pporpe.runs.folder import config_json, open_run_dir
 from pporpe.runs.kinds import kind_of
@@ -370,7 +365,7 @@ def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_po
         runs = [tmp_path / type(file).__name__ / name for name in ("a", "b")]
         for run in runs:
             run.mkdir(parents=True)
-        bar = _Progress(2, 0, runs, enabled=True, file=file)
+        bar = GridProgress(2, 0, runs, enabled=True, file=file)
         start = file.getvalue().count("\r")
         for _ in range(5):
             bar.poll(2, [])
@@ -415,7 +410,7 @@ def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> N
     (c / "episodes.csv").write_bytes(header.encode() + b"0,10,0,10\n\xff\xfe,1\n")  # not UTF-8
     assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
 
-    bar = _Progress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
+    bar = GridProgress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
     assert bar.episodes_total == 30  # c has no episode budget
     assert bar.count_episodes() == "13/30"  # the first count: no rate yet
     (a / "episodes.csv").write_text(header + rows([10, 20, 30, 40]))
@@ -440,7 +435,7 @@ def test_progress_bar_shows_its_own_time_left_and_not_tqdms(tmp_path: Path) -> N
     run.mkdir()
     (run / "episodes.csv").write_text(header + "0,10,0,10\n")
     file = io.StringIO()
-    bar = _Progress(3, 1, [run], enabled=True, budgets=[10], file=file)
+    bar = GridProgress(3, 1, [run], enabled=True, budgets=[10], file=file)
     bar.poll(1, [])  # the first count: no rate yet
     (run / "episodes.csv").write_text(header + "0,10,0,10\n1,20,0,10\n")
     bar.history[0] = (bar.history[0][0] - 60.0, 10)  # 10 steps in a minute

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from interrupt import Interrupted, at_episode
+from tiny import tiny_learner
 
 from pporpe.batch.config import BatchConfig
 from pporpe.cli import main
@@ -22,7 +23,7 @@ from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.runs import load_policy, train
 
 FIXTURES = Path(__file__).parent / "fixtures"
-TINY = OnlineConfig(layers=1, units=8, compile=False)
+TINY = tiny_learner()
 
 
 def tiny_run(tmp_path: Path, name: str = "run", episodes: int = 4) -> tuple[TrainConfig, Path]:

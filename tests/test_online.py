@@ -10,19 +10,19 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from tiny import baseline_config
 
 from pporpe.nn.mlp import FlatMLP, flat_views, mlp
 from pporpe.online import OnlineLearner, StepStats
-from pporpe.online.config import BASELINE_CHOICES, OnlineConfig, TrainConfig
+from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.surrogates import surrogate_objective
 
 # pporpe 0.2's learner choices pinned: these hand-worked cases are written for them; the
 # author's choices (the defaults) are tested one by one in test_fidelity_choices.py.
-SMALL = dict(layers=2, units=16, compile=False, **BASELINE_CHOICES)
 
 
 def make(method: str, seed: int = 0, **kw: object) -> OnlineLearner:
-    cfg = OnlineConfig(method=method, **{**SMALL, **kw})  # type: ignore[arg-type]
+    cfg = baseline_config(method=method, **kw)
     return OnlineLearner(3, -np.ones(2), np.ones(2), cfg, seed=seed)
 
 

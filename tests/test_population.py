@@ -7,36 +7,19 @@ import pytest
 import scipy.stats
 import torch
 from reference_online import ReferenceLearner as OnlineLearner
+from tiny import ACT, HIGH, LOW, OBS
+from tiny import baseline_config as cfg
+from tiny import population as pop
 
 from pporpe.nn.batched import NetLayout, backward_row0, forward_chain
-from pporpe.online.config import BASELINE_CHOICES, OnlineConfig
 from pporpe.online.noise import NoiseBank, polar_student_t
 from pporpe.online.population import ENGINES, PopulationLearner
 
 torch.set_num_threads(1)
 
+
 # pporpe 0.2's learner choices pinned: the reference learner implements them, and each
 # choice's test compares it against them.
-SMALL = {"layers": 2, "units": 16, "compile": False, **BASELINE_CHOICES}
-OBS, ACT = 3, 2
-LOW, HIGH = -np.ones(ACT), np.ones(ACT)
-
-
-def cfg(**kw: object) -> OnlineConfig:
-    return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
-
-
-def pop(
-    configs: list[OnlineConfig],
-    seeds: list[int],
-    compile_update: bool = False,
-    engine: str = "torch",
-):
-    return PopulationLearner(
-        OBS, LOW, HIGH, configs, seeds, compile_update=compile_update, engine=engine
-    )
-
-
 def data(n: int, seed: int = 1, episode: int = 100) -> list[tuple[float, np.ndarray, bool, bool]]:
     """Transitions; episode ends alternate between truncation and termination."""
     rng = np.random.default_rng(seed)

@@ -11,13 +11,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tiny import tiny_learner
 
 from pporpe.cli import main
-from pporpe.online.config import OnlineConfig, TrainConfig
+from pporpe.online.config import TrainConfig
 from pporpe.runs import NonFiniteError, train
 from pporpe.runs.logger import EpisodeRecord, read_records
 
-TINY = OnlineConfig(layers=1, units=8)
+TINY = tiny_learner(compile=True)
 
 
 def cfg(**kw: Any) -> TrainConfig:

@@ -10,22 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny import ACT, OBS
+from tiny import population as pop
+from tiny import small_config as cfg
 
 from pporpe.nn.mlp import mlp
 from pporpe.online import config as config_module
 from pporpe.online.config import AUTHOR_CHOICES, TESTBED, TESTBED_WEIGHTS, OnlineConfig
 from pporpe.online.population import PopulationLearner
-
-OBS, ACT = 3, 2
-SMALL = {"layers": 2, "units": 16, "compile": False}
-
-
-def cfg(**kw: object) -> OnlineConfig:
-    return OnlineConfig(**{**SMALL, **kw})  # type: ignore[arg-type]
-
-
-def pop(configs: list[OnlineConfig], seeds: list[int]) -> PopulationLearner:
-    return PopulationLearner(OBS, -np.ones(ACT), np.ones(ACT), configs, seeds, compile_update=False)
 
 
 def student_t_logp64(raw: torch.Tensor, u: torch.Tensor, min_scale: float) -> torch.Tensor:

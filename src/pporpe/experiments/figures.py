@@ -5,18 +5,15 @@
 * :func:`negative_loss_figure` - the paper's Fig. 2 (``img_loss``, Sec. III-A): rho * A^dagger
   against rho for PPO, PPO-RB and PPO-RPE, for A > 0 and A < 0, with the thresholds marked.
 
-:func:`draw_analytic_figures` writes both as PNG and PDF.
+:func:`draw_analytic_figures` writes both as PNG and PDF. The figures are
+:class:`matplotlib.figure.Figure` objects drawn without pyplot, so this module leaves the
+caller's matplotlib backend alone.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -54,7 +51,7 @@ def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
     cap = 1.0 / beta + 1.0 if beta > 0 else 3.0
     raw = np.minimum(rho.numpy(), cap)
 
-    fig = plt.figure(figsize=(11, 4.6))
+    fig = Figure(figsize=(11, 4.6))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax3.plot_surface(pb.numpy(), p.numpy(), raw, cmap="Greys", alpha=0.35, linewidth=0)
     ax3.plot_surface(pb.numpy(), p.numpy(), rb, cmap="coolwarm", alpha=0.9, linewidth=0)
@@ -99,7 +96,8 @@ def negative_loss_figure(
     """
     rho = torch.linspace(0.0, rho_max, 801, dtype=torch.float64)
     low, high = S.ratio_thresholds(eps, beta)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig = Figure(figsize=(11, 4.2))
+    axes = fig.subplots(1, 2)
     for ax, sign in zip(axes, (1.0, -1.0), strict=True):
         adv = torch.full_like(rho, sign)
         for method in S.METHODS:
@@ -153,5 +151,4 @@ def draw_analytic_figures(
     ):
         for ext in ("png", "pdf"):
             written.append(atomic_savefig(fig, out / f"{name}.{ext}"))
-        plt.close(fig)
     return written

@@ -134,8 +134,8 @@ def _fail(where: str, field: str, value: Any, allowed: str) -> ValueError:
     return ValueError(f"{where}: field '{field}' must be {allowed}; got {value!r}")
 
 
-def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
-    """Validate a spec dictionary and expand it into runs (no run is started)."""
+def _parse_header(data: dict[str, Any], where: str) -> tuple[str, Any]:
+    """The spec's fields are known and the required ones there; its name and learner kind."""
     unknown = sorted(set(data) - _TOP_FIELDS)
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {unknown}; allowed: {sorted(_TOP_FIELDS)}")
@@ -145,83 +145,103 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
     name = data.get("name", Path(where).stem)
     if not isinstance(name, str):
         raise _fail(where, "name", name, "a string")
-
-    kind_name = data.get("kind", "online")
     try:
-        kind = get_kind(kind_name)
+        kind = get_kind(data.get("kind", "online"))
     except ValueError as exc:
         raise ValueError(f"{where}: field 'kind': {exc}") from None
+    return name, kind
 
-    methods = data["methods"]
+
+def _parse_methods(methods: Any, where: str) -> list[str]:
+    """``methods``: a non-empty list of distinct names from :data:`METHODS`."""
     if not (isinstance(methods, list) and methods and all(m in METHODS for m in methods)):
         raise _fail(where, "methods", methods, f"a non-empty list drawn from {list(METHODS)}")
     if len(set(methods)) != len(methods):
         raise _fail(where, "methods", methods, "a list without repeats")
+    return list(methods)
 
-    seeds_raw = data["seeds"]
-    if is_int(seeds_raw):
-        if seeds_raw < 1:
-            raise _fail(where, "seeds", seeds_raw, "a positive count or a list of ints >= 0")
-        seeds = list(range(seeds_raw))
-    elif (
-        isinstance(seeds_raw, list)
-        and seeds_raw
-        and all(is_int(s) and s >= 0 for s in seeds_raw)
-        and len(set(seeds_raw)) == len(seeds_raw)
+
+def _parse_seeds(seeds: Any, where: str) -> list[int]:
+    """``seeds``: a count n (seeds 0..n-1) or a non-empty list of distinct ints >= 0."""
+    if is_int(seeds):
+        if seeds < 1:
+            raise _fail(where, "seeds", seeds, "a positive count or a list of ints >= 0")
+        return list(range(seeds))
+    if (
+        isinstance(seeds, list)
+        and seeds
+        and all(is_int(s) and s >= 0 for s in seeds)
+        and len(set(seeds)) == len(seeds)
     ):
-        seeds = list(seeds_raw)
-    else:
-        raise _fail(
-            where, "seeds", seeds_raw, "a positive count or a non-empty list of distinct ints >= 0"
-        )
+        return list(seeds)
+    raise _fail(where, "seeds", seeds, "a positive count or a non-empty list of distinct ints >= 0")
 
+
+def _parse_common(data: dict[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The settings of every run: ``eval_episodes`` and ``checkpoint_every``, and the
+    ``learner`` table (which must not set the method)."""
     eval_episodes = data.get("eval_episodes", 50)
     if not (is_int(eval_episodes) and eval_episodes >= 0):
         raise _fail(where, "eval_episodes", eval_episodes, "an int >= 0")
     checkpoint_every = data.get("checkpoint_every", 10)
     if not (is_int(checkpoint_every) and checkpoint_every >= 1):
         raise _fail(where, "checkpoint_every", checkpoint_every, "an int >= 1")
-
-    base_learner = data.get("learner", {})
-    if not isinstance(base_learner, dict):
-        raise _fail(where, "learner", base_learner, "a table of learner settings")
-    if "method" in base_learner:
+    learner = data.get("learner", {})
+    if not isinstance(learner, dict):
+        raise _fail(where, "learner", learner, "a table of learner settings")
+    if "method" in learner:
         raise ValueError(f"{where}: field 'learner.method' is set by 'methods', not by learner")
+    return {"eval_episodes": eval_episodes, "checkpoint_every": checkpoint_every}, learner
 
+
+def _parse_task(
+    task: dict[str, Any], at: str, seen_envs: set[str]
+) -> tuple[str, dict[str, Any], dict[str, Any]]:
+    """One ``[[tasks]]`` table: its environment (added to ``seen_envs``, which must not
+    hold it yet), its budget (episodes or steps) and its learner settings."""
+    unknown = sorted(set(task) - _TASK_FIELDS)
+    if unknown:
+        raise ValueError(f"{at}: unknown field(s) {unknown}; allowed: {sorted(_TASK_FIELDS)}")
+    env = task.get("env")
+    if not isinstance(env, str):
+        raise ValueError(f"{at}: field 'env' must be a task alias or Gymnasium id; got {env!r}")
+    try:
+        resolve_env_id(env)
+    except ValueError as exc:
+        raise ValueError(f"{at}: field 'env': {exc}") from None
+    if env in seen_envs:
+        raise ValueError(f"{at}: field 'env' repeats {env!r}")
+    seen_envs.add(env)
+    episodes, steps = task.get("episodes"), task.get("steps")
+    if (episodes is None) == (steps is None):
+        raise ValueError(f"{at}: exactly one of the fields 'episodes' and 'steps' must be set")
+    for fname, value in (("episodes", episodes), ("steps", steps)):
+        if value is not None and not (is_int(value) and value >= 1):
+            raise ValueError(f"{at}: field '{fname}' must be an int >= 1; got {value!r}")
+    learner = task.get("learner", {})
+    if not isinstance(learner, dict) or "method" in learner:
+        raise ValueError(
+            f"{at}: field 'learner' must be a table of learner settings other than method"
+        )
+    budget = {"episodes": episodes} if episodes is not None else {"steps": steps}
+    return env, budget, learner
+
+
+def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
+    """Validate a spec dictionary and expand it into runs (no run is started): every task,
+    then every seed, then every method."""
+    name, kind = _parse_header(data, where)
+    methods = _parse_methods(data["methods"], where)
+    seeds = _parse_seeds(data["seeds"], where)
+    common, base_learner = _parse_common(data, where)
     tasks = data["tasks"]
     if not (isinstance(tasks, list) and tasks and all(isinstance(t, dict) for t in tasks)):
         raise _fail(where, "tasks", tasks, "a non-empty array of tables ([[tasks]])")
-
     runs: list[RunSpec] = []
     seen_envs: set[str] = set()
     for i, task in enumerate(tasks):
         at = f"{where}: tasks[{i}]"
-        unknown = sorted(set(task) - _TASK_FIELDS)
-        if unknown:
-            raise ValueError(f"{at}: unknown field(s) {unknown}; allowed: {sorted(_TASK_FIELDS)}")
-        env = task.get("env")
-        if not isinstance(env, str):
-            raise ValueError(f"{at}: field 'env' must be a task alias or Gymnasium id; got {env!r}")
-        try:
-            resolve_env_id(env)
-        except ValueError as exc:
-            raise ValueError(f"{at}: field 'env': {exc}") from None
-        if env in seen_envs:
-            raise ValueError(f"{at}: field 'env' repeats {env!r}")
-        seen_envs.add(env)
-        episodes, steps = task.get("episodes"), task.get("steps")
-        if (episodes is None) == (steps is None):
-            raise ValueError(f"{at}: exactly one of the fields 'episodes' and 'steps' must be set")
-        for fname, value in (("episodes", episodes), ("steps", steps)):
-            if value is not None and not (is_int(value) and value >= 1):
-                raise ValueError(f"{at}: field '{fname}' must be an int >= 1; got {value!r}")
-        task_learner = task.get("learner", {})
-        if not isinstance(task_learner, dict) or "method" in task_learner:
-            raise ValueError(
-                f"{at}: field 'learner' must be a table of learner settings other than method"
-            )
-        budget = {"episodes": episodes} if episodes is not None else {"steps": steps}
-        common = {"eval_episodes": eval_episodes, "checkpoint_every": checkpoint_every}
+        env, budget, task_learner = _parse_task(task, at, seen_envs)
         overrides = {**base_learner, **task_learner}
         for seed in seeds:
             for method in methods:

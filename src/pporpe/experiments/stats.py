@@ -11,6 +11,7 @@ methods' seeds independently.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ __all__ = [
     "average_probability_of_improvement_ci",
     "bootstrap_ci",
     "iqm",
+    "mean_ci",
     "probability_of_improvement",
     "probability_of_improvement_ci",
 ]
@@ -47,6 +49,19 @@ class Estimate:
 
     def __str__(self) -> str:
         return f"{self.value:.1f} [{self.low:.1f}, {self.high:.1f}]"
+
+
+def mean_ci(values: Sequence[float], level: float = 0.95) -> tuple[float, float, float]:
+    """Mean and the two ends of its Student-t confidence interval (NaN ends for n < 2)."""
+    arr = np.asarray(values, dtype=np.float64)
+    n = arr.size
+    if n == 0:
+        return math.nan, math.nan, math.nan
+    mean = float(arr.mean())
+    if n < 2:
+        return mean, math.nan, math.nan
+    half = float(stats.t.ppf(0.5 + level / 2, n - 1) * arr.std(ddof=1) / math.sqrt(n))
+    return mean, mean - half, mean + half
 
 
 def iqm(x: Any, axis: int = -1) -> Any:

@@ -162,6 +162,20 @@ The remaining differences (the multivariate student-t of more than one action di
 the random streams) are listed in docs/testbed.md."""
 
 
+_CHOICE_FIELDS = (
+    ("td_units", TD_UNITS),
+    ("entropy_density", ENTROPY_DENSITIES),
+    ("critic_signal", CRITIC_SIGNALS),
+    ("trace_divergence", TRACE_DIVERGENCES),
+    ("amsgrad_max", AMSGRAD_MAXES),
+    ("policy_gradient", POLICY_GRADIENTS),
+    ("time_limit", TIME_LIMITS),
+    ("head_tensors", HEAD_TENSORS),
+    ("engine", ENGINES),
+)
+"""The fields of :class:`OnlineConfig` that take one of a few names, with those names."""
+
+
 @dataclass(frozen=True)
 class OnlineConfig:
     """Settings of the paper's online actor-critic learner (Algorithm 1, Table I).
@@ -290,6 +304,24 @@ class OnlineConfig:
         for name in ("gamma", "lr", "opt_eps", "k_dof", "tau", "nu"):
             require(is_real(getattr(self, name)), name, getattr(self, name), "a number")
         require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
+        self._validate_optimiser()
+        self._validate_target_traces_and_rewards()
+        validate_network_fields(self)
+        require(
+            is_real(self.min_scale) and 0.0 < self.min_scale < math.inf,
+            "min_scale",
+            self.min_scale,
+            "a finite number > 0",
+        )
+        for name in ("compile", "layer_norm_affine"):
+            value = getattr(self, name)
+            require(isinstance(value, bool), name, value, "True or False")
+        for name, allowed in _CHOICE_FIELDS:
+            value = getattr(self, name)
+            require(value in allowed, name, value, f"one of {list(allowed)}")
+
+    def _validate_optimiser(self) -> None:
+        """lr, opt_betas, opt_eps, k_dof and amsgrad_decay are in their ranges."""
         require(0.0 < self.lr < math.inf, "lr", self.lr, "a finite number > 0")
         require(
             isinstance(self.opt_betas, tuple | list)
@@ -307,6 +339,9 @@ class OnlineConfig:
             self.amsgrad_decay,
             "in [0, 1]",
         )
+
+    def _validate_target_traces_and_rewards(self) -> None:
+        """tau, nu, lambdas, kappa, the regulariser weights and reward_scale are in range."""
         require(0.0 < self.tau <= 1.0, "tau", self.tau, "in (0, 1]")
         require(self.nu > 0.0, "nu", self.nu, "> 0 (inf allowed)")
         require(
@@ -317,13 +352,7 @@ class OnlineConfig:
             self.lambdas,
             "two numbers in [0, 1]",
         )
-        require(
-            is_real(self.kappa) and 0.0 <= self.kappa < math.inf,
-            "kappa",
-            self.kappa,
-            "a finite number >= 0",
-        )
-        for name in ("beta_td", "beta_de"):
+        for name in ("kappa", "beta_td", "beta_de"):
             v = getattr(self, name)
             require(is_real(v) and 0.0 <= v < math.inf, name, v, "a finite number >= 0")
         require(
@@ -333,33 +362,6 @@ class OnlineConfig:
             self.reward_scale,
             "None or a finite number > 0",
         )
-        validate_network_fields(self)
-        require(
-            is_real(self.min_scale) and 0.0 < self.min_scale < math.inf,
-            "min_scale",
-            self.min_scale,
-            "a finite number > 0",
-        )
-        require(isinstance(self.compile, bool), "compile", self.compile, "True or False")
-        require(
-            isinstance(self.layer_norm_affine, bool),
-            "layer_norm_affine",
-            self.layer_norm_affine,
-            "True or False",
-        )
-        for name, allowed in (
-            ("td_units", TD_UNITS),
-            ("entropy_density", ENTROPY_DENSITIES),
-            ("critic_signal", CRITIC_SIGNALS),
-            ("trace_divergence", TRACE_DIVERGENCES),
-            ("amsgrad_max", AMSGRAD_MAXES),
-            ("policy_gradient", POLICY_GRADIENTS),
-            ("time_limit", TIME_LIMITS),
-            ("head_tensors", HEAD_TENSORS),
-            ("engine", ENGINES),
-        ):
-            value = getattr(self, name)
-            require(value in allowed, name, value, f"one of {list(allowed)}")
 
     @property
     def effective_reward_scale(self) -> float:

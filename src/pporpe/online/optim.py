@@ -205,6 +205,22 @@ class _SegmentExpander:
         return self.out_n
 
 
+@dataclass(frozen=True)
+class _Moments:
+    """What one parameter's second-moment step reads: its gradient, v, the scaled running
+    maximum (None without AMSGrad), the step tensor, beta2 and its bias correction, eps,
+    and whether the fused kernel applies."""
+
+    g: Tensor
+    v: Tensor
+    vmax: Tensor | None
+    step: Tensor
+    beta2: float
+    bc2: float
+    eps: float
+    fused: bool
+
+
 @dataclass
 class _Cache:
     """Per-parameter derived data and scratch buffers (not part of the state)."""
@@ -430,8 +446,34 @@ class TDAmsProp(torch.optim.Optimizer):
         if g.is_sparse:
             raise RuntimeError("TDAmsProp does not support sparse gradients")
         beta1, beta2 = group["betas"]
-        eps: float = group["eps"]
+        c = self._cache_for(p, group)
+        state = self.state[p]
+        if not state:
+            self._init_state(p, state, c.nseg, beta1)
+        step_t: Tensor = state["step"]
+        t = self._count_step(c, step_t)
+        bc2 = 1.0 - beta2**t
+
+        # vmax_scaled = vmax * bc2_t, so vmax_t = max(decay vmax_{t-1}, v_t / bc2_t) becomes
+        # vmax_scaled_t = max(decay * bc2_t / bc2_{t-1} * vmax_scaled_{t-1}, v_t).
         decay: float = group["amsgrad_decay"]
+        vmax_s: Tensor = state["vmax_scaled"]
+        if decay > 0.0 and t > 1:
+            vmax_s.mul_(decay * bc2 / (1.0 - beta2 ** (t - 1)))
+        moments = _Moments(
+            g, state["v"], vmax_s if decay > 0.0 else None, step_t, beta2, bc2, group["eps"],
+            c.fused_ok and g.dtype is c.dtype and g.is_contiguous() and not g.is_cuda,
+        )  # fmt: skip
+        m: Tensor = state["m"]
+        if beta1 == 0.0 or math.isinf(group["k_dof"]):  # b == beta1
+            self._momentum_step(m, moments, c, beta1)
+        else:
+            self._t_momentum_step(m, state["W"], moments, c, beta1)
+        p.add_(m, alpha=-group["lr"] / (1.0 - beta1**t))
+
+    def _cache_for(self, p: Tensor, group: dict[str, Any]) -> _Cache:
+        """The cached helpers of ``p``, rebuilt when its group's segments, k_dof or the
+        parameter's dtype changed."""
         c = self._cache.get(p)
         if (
             c is None
@@ -440,69 +482,57 @@ class TDAmsProp(torch.optim.Optimizer):
             or c.dtype is not p.dtype
         ):
             c = self._get_cache(p, group)
-        state = self.state[p]
-        if not state:
-            self._init_state(p, state, c.nseg, beta1)
-        v: Tensor = state["v"]
-        vmax_s: Tensor = state["vmax_scaled"]
-        m: Tensor = state["m"]
-        step_t: Tensor = state["step"]
+        return c
 
-        # Python mirror of the step count (no .item() except after a state swap).
+    @staticmethod
+    def _count_step(c: _Cache, step_t: Tensor) -> int:
+        """Advance the step count; returns t. A Python mirror of it avoids an ``.item()``
+        per step (read again only after a state swap)."""
         if c.step_ref is not step_t:
             c.step_ref = step_t
             c.step = int(step_t.item())
         c.step += 1
-        t = c.step
         step_t.add_(c.one)
-        bc1 = 1.0 - beta1**t
-        bc2 = 1.0 - beta2**t
+        return c.step
 
-        # vmax_scaled = vmax * bc2_t, so vmax_t = max(decay vmax_{t-1}, v_t / bc2_t) becomes
-        # vmax_scaled_t = max(decay * bc2_t / bc2_{t-1} * vmax_scaled_{t-1}, v_t).
-        ams = decay > 0.0
-        if ams and t > 1:
-            vmax_s.mul_(decay * bc2 / (1.0 - beta2 ** (t - 1)))
-        src = vmax_s if ams else None
-        momentum_only = beta1 == 0.0 or math.isinf(group["k_dof"])  # b == beta1
-        fused = c.fused_ok and g.dtype is c.dtype and g.is_contiguous() and not g.is_cuda
-
-        diff = c.diff
-        if momentum_only:
-            # m <- beta1 m + (1 - beta1) gv
-            if beta1 == 0.0:
-                m.zero_()
-            else:
-                m.mul_(beta1)
-            if fused:
-                _fused_second_moment(m, g, c.scratch, v, src, step_t, 1.0 - beta1, beta2, eps)
-            else:
-                gv = self._eager_gv(g, v, src, beta2, bc2, eps, out=c.scratch)
-                m.add_(gv, alpha=1.0 - beta1)
+    def _momentum_step(self, m: Tensor, mo: _Moments, c: _Cache, beta1: float) -> None:
+        """m <- beta1 m + (1 - beta1) gv: the fixed-rate momentum (k_dof = inf or beta1 = 0)."""
+        if beta1 == 0.0:
+            m.zero_()
         else:
-            # diff = gv - m
-            if fused:
-                torch.neg(m, out=diff)
-                _fused_second_moment(diff, g, c.scratch, v, src, step_t, 1.0, beta2, eps)
-            else:
-                self._eager_gv(g, v, src, beta2, bc2, eps, out=diff).sub_(m)
-            W: Tensor = state["W"]
-            if c.seg_matrix is None:
-                sq = torch.dot(diff.view(-1), diff.view(-1))
-            else:
-                sq = c.seg_matrix @ diff  # the CSR's values ARE ``diff``: sum of diff^2
-            w = torch.div(c.num, sq.add_(c.den))  # (n + dof) / (dof + ||gv - m||^2)
-            Ww = torch.add(W, w)
-            one_minus_b = torch.div(w, Ww)  # 1 - b = w / (W + w)
-            torch.add(Ww, W, alpha=1.0 - 1.0 / beta1, out=W)  # W <- (2 - 1/beta1) W + w
-            if c.expander is not None:
-                one_minus_b = c.expander(one_minus_b)
-            else:
-                one_minus_b = one_minus_b.view(())
-            # m <- b m + (1 - b) gv = m + (1 - b)(gv - m)
-            m.addcmul_(one_minus_b, diff)
+            m.mul_(beta1)
+        if mo.fused:
+            _fused_second_moment(
+                m, mo.g, c.scratch, mo.v, mo.vmax, mo.step, 1.0 - beta1, mo.beta2, mo.eps
+            )
+        else:
+            gv = self._eager_gv(mo.g, mo.v, mo.vmax, mo.beta2, mo.bc2, mo.eps, out=c.scratch)
+            m.add_(gv, alpha=1.0 - beta1)
 
-        p.add_(m, alpha=-group["lr"] / bc1)
+    def _t_momentum_step(self, m: Tensor, W: Tensor, mo: _Moments, c: _Cache, beta1: float) -> None:
+        """The t-momentum: m <- b m + (1 - b) gv with 1 - b = w / (W + w), per segment
+        w = (n + dof) / (dof + ||gv - m||^2), and W <- (2 - 1/beta1) W + w."""
+        diff = c.diff  # gv - m
+        if mo.fused:
+            torch.neg(m, out=diff)
+            _fused_second_moment(
+                diff, mo.g, c.scratch, mo.v, mo.vmax, mo.step, 1.0, mo.beta2, mo.eps
+            )
+        else:
+            self._eager_gv(mo.g, mo.v, mo.vmax, mo.beta2, mo.bc2, mo.eps, out=diff).sub_(m)
+        if c.seg_matrix is None:
+            sq = torch.dot(diff.view(-1), diff.view(-1))
+        else:
+            sq = c.seg_matrix @ diff  # the CSR's values ARE ``diff``: sum of diff^2
+        w = torch.div(c.num, sq.add_(c.den))  # (n + dof) / (dof + ||gv - m||^2)
+        Ww = torch.add(W, w)
+        one_minus_b = torch.div(w, Ww)  # 1 - b = w / (W + w)
+        torch.add(Ww, W, alpha=1.0 - 1.0 / beta1, out=W)  # W <- (2 - 1/beta1) W + w
+        if c.expander is not None:
+            one_minus_b = c.expander(one_minus_b)
+        else:
+            one_minus_b = one_minus_b.view(())
+        m.addcmul_(one_minus_b, diff)  # m <- m + (1 - b)(gv - m)
 
     @staticmethod
     def _eager_gv(

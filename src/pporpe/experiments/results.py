@@ -1,0 +1,89 @@
+"""A grid's results folder read into (task, method) cells, and per-run numbers from them."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..runs.logger import EpisodeRecord, read_records
+
+__all__ = [
+    "EARLY_EPISODES",
+    "Cell",
+    "early_return",
+    "load_results",
+    "mean_regularization",
+    "tasks_of",
+    "update_mean",
+]
+
+EARLY_EPISODES = 50
+"""Training episodes of the early-learning comparison (the paper's pendulum claim)."""
+
+
+@dataclass
+class Cell:
+    """Results of one (task, method) over seeds."""
+
+    env: str
+    method: str
+    scores: dict[int, float]
+    """Per-seed median test return."""
+    curves: dict[int, list[EpisodeRecord]]
+    """Per-seed training records."""
+    missing: list[int]
+    """Seeds without a finished run."""
+
+
+def load_results(out: str | Path) -> list[Cell]:
+    """Collect every run of the grid in ``out`` into (task, method) cells."""
+    root = Path(out)
+    grid_file = root / "grid.json"
+    if not grid_file.exists():
+        raise ValueError(f"{root} holds no grid results (no grid.json); run `pporpe reproduce`")
+    grid = json.loads(grid_file.read_text())
+    cells: dict[tuple[str, str], Cell] = {}
+    for run in grid["runs"]:
+        key = (run["env"], run["method"])
+        cell = cells.setdefault(key, Cell(run["env"], run["method"], {}, {}, []))
+        run_dir = root / run["key"]
+        if not (run_dir / "done.json").exists():
+            cell.missing.append(run["seed"])
+            continue
+        cell.curves[run["seed"]] = read_records(run_dir / "episodes.csv")
+        ev = run_dir / "evaluation.json"
+        if ev.exists():
+            cell.scores[run["seed"]] = float(json.loads(ev.read_text())["median"])
+    return list(cells.values())
+
+
+def tasks_of(cells: list[Cell]) -> list[str]:
+    """The tasks of ``cells`` in their first order."""
+    return list(dict.fromkeys(c.env for c in cells))
+
+
+def early_return(records: list[EpisodeRecord], episodes: int = EARLY_EPISODES) -> float:
+    """Mean return of a run's first ``episodes`` training episodes (NaN without any)."""
+    rets = [r.ret for r in records[:episodes]]
+    return float(np.mean(rets)) if rets else math.nan
+
+
+def mean_regularization(records: list[EpisodeRecord]) -> float:
+    """Mean over a run's training episodes of sigma*(rho - rho_dagger) (NaN without any)."""
+    vals = [r.reg_amount for r in records if math.isfinite(r.reg_amount)]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def update_mean(records: list[EpisodeRecord], field: str) -> float:
+    """Mean over a run's updates of a per-episode mean ``field`` (``past_threshold``,
+    ``ratio_dev``, ``trace_decay``): episodes weighted by their length, since an online run
+    makes one update per step (NaN without any finite value)."""
+    pairs = [(getattr(r, field), r.length) for r in records]
+    pairs = [(v, n) for v, n in pairs if math.isfinite(v) and n > 0]
+    if not pairs:
+        return math.nan
+    return float(sum(v * n for v, n in pairs) / sum(n for _, n in pairs))

@@ -1,0 +1,104 @@
+"""The statistics a report prints, computed once: per-cell rows and PPO-RPE's improvements."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .figures import METHOD_LABELS
+from .results import Cell, early_return, mean_regularization, tasks_of, update_mean
+from .stats import Estimate, bootstrap_ci, iqm, mean_ci, probability_of_improvement_ci
+
+__all__ = ["Statistics", "cell_rows", "improvement_rows", "statistics"]
+
+
+@dataclass(frozen=True)
+class Statistics:
+    """Every statistic a report prints, computed once (the bootstraps are the slow part)."""
+
+    rows: list[dict[str, Any]]
+    """Per task and method: scores, early learning, regularisation, updates past the
+    threshold and abs(rho - 1) (``summary.csv``)."""
+    improvements: list[dict[str, Any]]
+    """Per task and rival: the probabilities of improvement of PPO-RPE."""
+
+
+def statistics(cells: list[Cell]) -> Statistics:
+    """The tables of a report: :func:`cell_rows` and :func:`improvement_rows`."""
+    return Statistics(cell_rows(cells), improvement_rows(cells))
+
+
+def _finite(values: list[float]) -> list[float]:
+    return [v for v in values if math.isfinite(v)]
+
+
+def _estimate(values: list[float], statistic: Any = np.mean) -> Estimate | None:
+    vals = _finite(values)
+    return bootstrap_ci(vals, statistic) if vals else None
+
+
+def _put(row: dict[str, Any], name: str, est: Estimate | None) -> None:
+    """``row[name_value|low|high]``: the estimate's three numbers (NaN without one)."""
+    for part in ("value", "low", "high"):
+        row[f"{name}_{part}"] = math.nan if est is None else getattr(est, part)
+
+
+def cell_rows(cells: list[Cell]) -> list[dict[str, Any]]:
+    """One row per cell: the mean score with its Student-t CI, then the bootstrap estimates
+    (``<name>_value|low|high``) of the mean score (``boot``), its IQM, the first-50 return,
+    the regularisation amount, the share of updates past the threshold and abs(rho - 1)."""
+    rows = []
+    for c in cells:
+        scores = list(c.scores.values())
+        mean, lo, hi = mean_ci(scores)
+        row: dict[str, Any] = {
+            "task": c.env,
+            "method": METHOD_LABELS.get(c.method, c.method),
+            "mean_score": mean,
+            "ci95_low": lo,
+            "ci95_high": hi,
+            "seeds": len(c.scores),
+            "missing": len(c.missing),
+        }
+        runs = list(c.curves.values())
+        _put(row, "boot", _estimate(scores))
+        _put(row, "iqm", _estimate(scores, iqm))
+        _put(row, "first50", _estimate([early_return(r) for r in runs]))
+        _put(row, "reg", _estimate([mean_regularization(r) for r in runs]))
+        _put(row, "past", _estimate([update_mean(r, "past_threshold") for r in runs]))
+        _put(row, "ratio_dev", _estimate([update_mean(r, "ratio_dev") for r in runs]))
+        rows.append(row)
+    return rows
+
+
+def _per_seed(cell: Cell) -> dict[str, list[float]]:
+    """The per-seed numbers compared between methods: score, first-50 return, regularisation."""
+    return {
+        "score": list(cell.scores.values()),
+        "first50": [early_return(r) for r in cell.curves.values()],
+        "reg": [mean_regularization(r) for r in cell.curves.values()],
+    }
+
+
+def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]:
+    """Per task and rival method: P(``of`` > rival) of the scores, of the early returns and
+    of the regularisation amount, each with its bootstrap CI."""
+    rows = []
+    for env in tasks_of(cells):
+        here = {c.method: c for c in cells if c.env == env}
+        if of not in here:
+            continue
+        mine = _per_seed(here[of])
+        for rival, theirs in here.items():
+            if rival == of:
+                continue
+            row: dict[str, Any] = {"task": env, "method": of, "rival": rival}
+            for name, y in _per_seed(theirs).items():
+                x, y = _finite(mine[name]), _finite(y)
+                _put(row, name, probability_of_improvement_ci(x, y) if x and y else None)
+                row[f"{name}_n"] = (len(x), len(y))
+            rows.append(row)
+    return rows

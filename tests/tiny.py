@@ -1,0 +1,63 @@
+"""The small learners and tasks the tests share (imported by the test files; conftest.py
+holds the session settings).
+
+Small networks keep a test fast; a test that needs other sizes passes them as keywords.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pporpe.online import BASELINE_CHOICES, OnlineConfig, PopulationLearner
+from pporpe.online.config import TrainConfig
+
+SMALL_NET: dict[str, Any] = {"layers": 2, "units": 16, "compile": False}
+"""Two hidden layers of 16 units, no compiled update: the population and fidelity tests."""
+
+OBS, ACT = 3, 2
+"""Observation and action sizes of the synthetic transitions the learner tests feed."""
+LOW, HIGH = -np.ones(ACT), np.ones(ACT)
+"""Action bounds of those tests."""
+
+
+def small_config(**kw: Any) -> OnlineConfig:
+    """An :class:`OnlineConfig` with :data:`SMALL_NET` and today's defaults otherwise."""
+    return OnlineConfig(**{**SMALL_NET, **kw})
+
+
+def baseline_config(**kw: Any) -> OnlineConfig:
+    """:func:`small_config` with :data:`~pporpe.online.BASELINE_CHOICES`: the choices the
+    scalar reference learner (``reference_online.py``) implements."""
+    return OnlineConfig(**{**SMALL_NET, **BASELINE_CHOICES, **kw})
+
+
+def population(
+    configs: list[OnlineConfig],
+    seeds: list[int],
+    compile_update: bool = False,
+    engine: str | None = None,
+) -> PopulationLearner:
+    """A population of ``configs`` on the :data:`OBS` / :data:`ACT` synthetic task
+    (``engine``: None, the configs' own)."""
+    return PopulationLearner(
+        OBS, LOW, HIGH, configs, seeds, compile_update=compile_update, engine=engine
+    )
+
+
+def tiny_learner(**kw: Any) -> OnlineConfig:
+    """One hidden layer of 8 units: the smallest learner a whole training run uses."""
+    return OnlineConfig(**{"layers": 1, "units": 8, "compile": False, **kw})
+
+
+def tiny_run_config(**kw: Any) -> TrainConfig:
+    """A short InvertedPendulum run of :func:`tiny_learner` (``kw`` override)."""
+    base: dict[str, Any] = {
+        "env": "pendulum",
+        "episodes": 4,
+        "checkpoint_every": 2,
+        "eval_episodes": 0,
+        "learner": tiny_learner(),
+    }
+    return TrainConfig(**{**base, **kw})
