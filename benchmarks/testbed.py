@@ -178,17 +178,14 @@ def pporpe_spec(config: str, args: argparse.Namespace) -> Any:
     )
 
 
-def run_pporpe(args: argparse.Namespace) -> int:
-    """pporpe's learner with each config's settings for the seeds, then one result file
-    per finished seed. Runs of every config that share a network shape train as one
-    population of up to ``--population`` members (the run loop: checkpoints every minute,
-    a rerun of the same command resumes), so that ``--config testbed+lr testbed+target
-    ...`` costs far less than the configs one after another."""
-    from pporpe.experiments.backends import run_job
+def pporpe_groups(args: argparse.Namespace) -> list[tuple[list[str], list[tuple[str, Any]]]]:
+    """pporpe's runs of every ``args.config``, grouped by network shape (the runs one
+    population can train): per group, its configs and ``(run_dir, config.json content)``
+    of its runs, each under ``<root>/pporpe_runs/<config>/<task>/<method>/seed<N>``."""
     from pporpe.runs.folder import config_json
     from pporpe.runs.kinds import kind_of
 
-    groups: dict[Any, list[tuple[str, str, dict[str, Any]]]] = {}
+    groups: dict[Any, list[tuple[str, str, Any]]] = {}
     for config in args.config:
         for run in pporpe_spec(config, args).runs:
             kind = kind_of(run.config)
@@ -196,21 +193,33 @@ def run_pporpe(args: argparse.Namespace) -> int:
             groups.setdefault(kind.pack_key(run.config), []).append(
                 (config, str(run_dir), config_json(kind, run.config))
             )
+    return [
+        (list(dict.fromkeys(c for c, _, _ in members)), [(d, j) for _, d, j in members])
+        for members in groups.values()
+    ]
+
+
+def run_pporpe(args: argparse.Namespace) -> int:
+    """pporpe's learner with each config's settings for the seeds, then one result file
+    per finished seed. Runs of every config that share a network shape train as one
+    population of up to ``--population`` members (:func:`pporpe_groups`; the run loop:
+    checkpoints every minute, a rerun of the same command resumes), so that ``--config
+    testbed+lr testbed+target ...`` costs far less than the configs one after another."""
+    from pporpe.experiments.backends import run_job
+    from pporpe.experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS
+
     failed = 0
-    for members in groups.values():
-        configs = list(dict.fromkeys(c for c, _, _ in members))
+    for configs, runs in pporpe_groups(args):
         home = args.root / "pporpe_runs" / "populations" / f"{args.task}-{'-'.join(configs)}"
-        if len(configs) == 1 and len(members) > 1:  # where a single config's runs always were
-            home = args.root / "pporpe_runs" / configs[0] / "populations" / args.task
-        size = min(args.population, len(members))
-        print(f"{len(members)} runs of {', '.join(configs)}: population of {size}", flush=True)
-        status = run_job(str(home), [(d, c) for _, d, c in members], size, 60.0)
+        size = min(args.population, len(runs))
+        print(f"{len(runs)} runs of {', '.join(configs)}: population of {size}", flush=True)
+        status = run_job(str(home), runs, size, DEFAULT_CHECKPOINT_SECONDS)
         failed += sum(s["status"] != "done" for s in status)
     for config in args.config:
+        method = settings_for(config)["method"]
         for seed in args.seeds:
-            method = settings_for(config)["method"]
-            run_dir = args.root / "pporpe_runs" / config / args.task / method
-            export_pporpe_seed(run_dir / f"seed{seed}", args, config, seed)
+            run_dir = args.root / "pporpe_runs" / config / args.task / method / f"seed{seed}"
+            export_pporpe_seed(run_dir, args, config, seed)
     return 1 if failed else 0
 
 

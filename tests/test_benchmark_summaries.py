@@ -366,6 +366,36 @@ def test_testbed_config_names_canonical_and_refused() -> None:
             testbed.settings_for(bad)
 
 
+def test_testbed_pporpe_configs_of_one_shape_share_a_population(tmp_path: Path) -> None:
+    """Several --config values: the 128-unit ones form one group (one population), the
+    width group its own; every run has its folder under its config, its seed and its
+    settings."""
+    testbed, _ = _testbed_modules()
+    args = testbed.build_parser().parse_args(
+        ["pporpe", "--task", "swingup", "--config", "testbed+lr", "testbed+width",
+         "testbed+target", "--seeds", "1", "2", "--root", str(tmp_path)]
+    )  # fmt: skip
+    groups = testbed.pporpe_groups(args)
+    assert [configs for configs, _ in groups] == [["testbed+lr", "testbed+target"],
+                                                   ["testbed+width"]]  # fmt: skip
+    shared, width = groups[0][1], groups[1][1]
+    assert [Path(d).relative_to(tmp_path / "pporpe_runs").parts[0] for d, _ in shared] == [
+        "testbed+lr",
+        "testbed+lr",
+        "testbed+target",
+        "testbed+target",
+    ]
+    assert {Path(d).name for d, _ in width} == {"seed1", "seed2"}
+    lrs = [cfg["learner"]["lr"] for _, cfg in shared]
+    taus = [cfg["learner"]["tau"] for _, cfg in shared]
+    assert lrs == [3e-4, 3e-4, 1e-4, 1e-4] and taus == [1.0, 1.0, 0.3, 0.3]
+    assert {cfg["learner"]["units"] for _, cfg in width} == {100}
+    with pytest.raises(SystemExit):  # argparse names the option and what it allows
+        testbed.build_parser().parse_args(
+            ["pporpe", "--task", "swingup", "--config", "testbed+speed", "--seeds", "1"]
+        )
+
+
 def test_testbed_summary_from_result_files(tmp_path: Path) -> None:
     """Hand-made result files: the first-50 mean, the median score, P(pporpe > test bed)
     and the episodes whose bands are apart."""

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 
 from pporpe.online import BASELINE_CHOICES, OnlineConfig, PopulationLearner
-from pporpe.online.config import TrainConfig
 
 SMALL_NET: dict[str, Any] = {"layers": 2, "units": 16, "compile": False}
 """Two hidden layers of 16 units, no compiled update: the population and fidelity tests."""
@@ -49,15 +48,3 @@ def population(
 def tiny_learner(**kw: Any) -> OnlineConfig:
     """One hidden layer of 8 units: the smallest learner a whole training run uses."""
     return OnlineConfig(**{"layers": 1, "units": 8, "compile": False, **kw})
-
-
-def tiny_run_config(**kw: Any) -> TrainConfig:
-    """A short InvertedPendulum run of :func:`tiny_learner` (``kw`` override)."""
-    base: dict[str, Any] = {
-        "env": "pendulum",
-        "episodes": 4,
-        "checkpoint_every": 2,
-        "eval_episodes": 0,
-        "learner": tiny_learner(),
-    }
-    return TrainConfig(**{**base, **kw})

@@ -205,26 +205,24 @@ class PopulationState:
             p.raw_b[k] = pending.get("raw_b", torch.zeros(p.raw_b.shape[1]))
 
     # -- the whole population -------------------------------------------------------------
+    def _named_buffers(self) -> dict[str, Any]:
+        """Every buffer but the scratch gradient, by its :meth:`state_dict` name."""
+        out: dict[str, Any] = {
+            f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("grad", "pending")
+        }
+        out.update({f"pending.{f.name}": getattr(self.pending, f.name)
+                    for f in fields(self.pending)})  # fmt: skip
+        return out
+
     def state_dict(self) -> dict[str, Tensor]:
         """Every buffer but the scratch gradient, cloned, by name (``pending.obs``, ...)."""
-        out: dict[str, Tensor] = {}
-        for f in fields(self):
-            if f.name in ("grad", "pending"):
-                continue
-            out[f.name] = torch.as_tensor(getattr(self, f.name)).clone()
-        for f in fields(self.pending):
-            out[f"pending.{f.name}"] = torch.as_tensor(getattr(self.pending, f.name)).clone()
-        return out
+        return {name: torch.as_tensor(buf).clone() for name, buf in self._named_buffers().items()}
 
     @torch.no_grad()
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
         """Copy :meth:`state_dict`'s tensors into these buffers (in place). Raises
         ValueError naming a missing, unexpected or misshapen entry."""
-        targets: dict[str, Any] = {
-            f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("grad", "pending")
-        }
-        targets.update({f"pending.{f.name}": getattr(self.pending, f.name)
-                        for f in fields(self.pending)})  # fmt: skip
+        targets = self._named_buffers()
         if set(state) != set(targets):
             missing, extra = sorted(set(targets) - set(state)), sorted(set(state) - set(targets))
             raise ValueError(f"state_dict keys differ: missing {missing}, unexpected {extra}")
