@@ -10,9 +10,11 @@ import pytest
 import torch
 from tiny import small_config as cfg
 
+from pporpe.nn.batched import NetLayout
 from pporpe.nn.policies import NormalHead, StudentTHead
 from pporpe.online import fused
-from pporpe.online.config import AUTHOR_CHOICES, BASELINE_CHOICES, OnlineConfig
+from pporpe.online.config import AUTHOR_CHOICES, BASELINE_CHOICES, TESTBED, OnlineConfig
+from pporpe.online.fused_engine import segment_ranges
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import rpe_surrogate_advantage, surrogate_objective
 
@@ -130,6 +132,8 @@ def test_surrogate_derivative_identities() -> None:
 
 
 # ------------------------------------------------------------------------ the engines
+SPLIT_SMALL = {"layers": 2, "units": 16, "head_tensors": "per_output"}
+"""The small net with the test bed's split head (``head_tensors="per_output"``)."""
 MIXED = [
     cfg(),  # today's defaults
     cfg(**AUTHOR_CHOICES, method="ppo"),
@@ -143,6 +147,10 @@ OTHER_SHAPES = [
     [cfg(policy="normal", layer_norm=False, activation="relu", min_scale=1e-8)] * 2,
     [cfg(activation="tanh", min_scale=1e-8, policy_gradient="weighted_score"),
      cfg(activation="tanh", min_scale=1e-8, method="rb", entropy_density="pre_squash")],
+    # the test bed's learner, whose head is three layers for the t-momentum, beside others
+    [cfg(**{**TESTBED, **SPLIT_SMALL}),
+     cfg(**{**TESTBED, **SPLIT_SMALL}, k_dof=float("inf")),
+     cfg(**SPLIT_SMALL, min_scale=1e-8, method="rpe")],
 ]  # fmt: skip
 
 
@@ -188,7 +196,9 @@ def _pair(configs: list[OnlineConfig], n: int) -> tuple[dict, dict, list, list, 
     return _buffers(t), _buffers(f), st, sf, at, af
 
 
-@pytest.mark.parametrize("configs", [MIXED, *OTHER_SHAPES], ids=["mixed", "normal", "tanh"])
+@pytest.mark.parametrize(
+    "configs", [MIXED, *OTHER_SHAPES], ids=["mixed", "normal", "tanh", "split_head"]
+)
 def test_fused_engine_matches_torch_engine(configs: list[OnlineConfig]) -> None:
     """Every buffer after 25 steps (episode ends included) within float rounding.
 
@@ -323,3 +333,18 @@ def test_fused_eval_forward_matches_torch() -> None:
 def test_unknown_engine_is_refused() -> None:
     with pytest.raises(ValueError, match="engine"):
         PopulationLearner(OBS, LOW, HIGH, [cfg()], [0], engine="jax")
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_segment_ranges_hand_worked(split: bool) -> None:
+    """One hidden layer of 8 units on 3 inputs, a student-t head on 2 actions (location 2,
+    scale 2, df 1): the weight (24 elements, 3 rows) at 0, its bias at 24, the output
+    weight (5 rows) at 32 and its bias row at 72. Split, the output weight's rows and the
+    bias's columns go to their part; the bias's padding columns 77-79 to none."""
+    lay = NetLayout(3, 5, 1, 8, False, head_parts=(2, 2, 1) if split else None)
+    ranges = [tuple(r) for r in segment_ranges(lay).tolist()]
+    hidden = [(0, 24), (24, 32)]
+    if split:
+        assert ranges == [*hidden, (32, 48), (48, 64), (64, 72), (72, 74), (74, 76), (76, 77)]
+    else:
+        assert ranges == [*hidden, (32, 72), (72, 80)]

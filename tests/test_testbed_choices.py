@@ -273,8 +273,3 @@ def test_split_head_changes_only_the_output_layer_at_first() -> None:
     (out1, rest1), (out2, rest2) = gaps
     assert rest1 == 0.0 and out1 < 1e-6
     assert out2 > 100 * max(out1, 1e-9) and out2 > 100 * max(rest2, 1e-9)
-
-
-def test_the_fused_engine_refuses_a_split_head_by_name() -> None:
-    with pytest.raises(ValueError, match="head_tensors"):
-        pop([cfg(head_tensors="per_output", engine="fused")], [0])

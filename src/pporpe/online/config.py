@@ -291,8 +291,7 @@ class OnlineConfig:
     """Implementation of the step: batched torch operations (``"torch"``, default, the
     reference) or one numba kernel per step (``"fused"``, pporpe.online.fused: about 10x
     faster for a single run; its compiled code is cached on disk after the first use).
-    The two agree to float rounding, not bitwise, so this is part of a run's identity;
-    ``head_tensors="per_output"`` needs ``"torch"``."""
+    The two agree to float rounding, not bitwise, so this is part of a run's identity."""
     compile: bool = True
     """Compile the elementwise update (traces, td-AmsProp, t-soft) with ``torch.compile``:
     about 2x faster per step on this project's 2-core CPU after a compile of a few seconds

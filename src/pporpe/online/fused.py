@@ -439,7 +439,6 @@ def _pass2(
 def _update_kind(
     buf: tuple,
     seg: np.ndarray,
-    units: int,
     sc: np.ndarray,
     mom_only: bool,
     target: np.ndarray,
@@ -447,7 +446,8 @@ def _update_kind(
 ) -> float:
     """Traces, td-AmsProp and t-momentum of one net of one member, segment by segment.
 
-    ``buf = (p, g, e, r, v, vmax_s, m, W, num, den)`` (1-D views), ``sc`` float32
+    ``buf = (p, g, e, r, v, vmax_s, m, W, num, den)`` (1-D views), ``seg [S, 2]`` the
+    element range ``[lo, hi)`` of every segment (parameter tensor), ``sc`` float32
     ``[signal, c1, c2, beta2, 1 - beta2, vfac, sqrt(bc2), opt_eps, 1 - beta1, w_coef,
     lr / bc1]``. Returns ``sum((p - target)^2)`` after the step when ``target`` is
     not empty (the value net), else 0.
@@ -455,7 +455,7 @@ def _update_kind(
     p, g, e, r, v, vm, m, W, num, den = buf
     d2 = np.float32(0.0)
     for s in range(seg.shape[0]):
-        lo, hi = seg[s, 0] * units, (seg[s, 0] + seg[s, 1]) * units
+        lo, hi = seg[s, 0], seg[s, 1]
         sq = _pass1(g[lo:hi], e[lo:hi], r[lo:hi], v[lo:hi], vm[lo:hi], m[lo:hi], diff, sc)
         w = num[s] / (sq + den[s])
         if mom_only:
@@ -655,7 +655,7 @@ def _learn(
         buf = (P[j, k], g[j], e[j, k], r[j, k], v[j, k], vm[j, k], m[j, k], W[j, k],
                num[j, k], den[j, k])  # fmt: skip
         tgt = P[2, k] if j == 1 else no_target
-        d2 = _update_kind(buf, seg, geo[G_UNITS], consts, fl[F_MOM_ONLY] != 0, tgt, diff)
+        d2 = _update_kind(buf, seg, consts, fl[F_MOM_ONLY] != 0, tgt, diff)
     rate = _tsoft_rate(k, d2, hf[1], cf, fl[F_POLYAK] != 0, sc)
     _target_step(P[2, k], P[1, k], rate)
 

@@ -9,13 +9,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..nn.batched import NetLayout
 from . import fused
 from .config import OnlineConfig
 
 if TYPE_CHECKING:
     from .population import PopulationLearner
 
-__all__ = ["FusedEngine"]
+__all__ = ["FusedEngine", "segment_ranges"]
 
 
 def _np(t: Tensor, *shape: int) -> np.ndarray:
@@ -24,16 +25,35 @@ def _np(t: Tensor, *shape: int) -> np.ndarray:
     return arr.reshape(shape) if shape else arr
 
 
+def segment_ranges(lay: NetLayout) -> np.ndarray:
+    """The element range ``[lo, hi)`` of every segment of ``lay`` (the tensors of the
+    t-momentum, in :attr:`NetLayout.segments` order), as an int64 array ``[S, 2]``.
+
+    A segment is the rows ``lay.row_seg`` gives it; with a split head (``lay.col_seg``)
+    the output bias's row is cut into the columns of each part, and its padding columns
+    (past ``raw_dim``), whose gradient, moments and step are always 0, belong to none.
+    """
+    units = lay.units
+    owner = lay.row_seg.repeat_interleave(units)
+    if lay.col_seg is not None:
+        bias = slice(lay.bias_row * units, (lay.bias_row + 1) * units)
+        owner[bias] = lay.col_seg
+        owner[lay.bias_row * units + lay.raw_dim : (lay.bias_row + 1) * units] = -1
+    ranges = np.zeros((lay.n_seg, 2), dtype=np.int64)
+    for s in range(lay.n_seg):
+        where = torch.nonzero(owner == s).flatten()
+        lo, hi = int(where[0]), int(where[-1]) + 1
+        if hi - lo != len(where):
+            raise ValueError(f"segment {s} of the layout is not one contiguous range")
+        ranges[s] = lo, hi
+    return ranges
+
+
 class FusedEngine:
     """Numpy views of ``pop``'s buffers and the layout, for :func:`fused.fused_step`."""
 
     def __init__(self, pop: PopulationLearner) -> None:
         lay, K = pop.lay, pop.K
-        if lay.col_seg is not None:  # its t-momentum takes one segment per tensor slot
-            raise ValueError(
-                "head_tensors='per_output' is not supported by engine='fused' yet; "
-                "use engine='torch' (the default)"
-            )
         units, n_pad = lay.units, lay.n_pad
         g_ = [-1 if h[2] is None else h[2].offset for h in lay.hidden]
         be_ = [-1 if h[3] is None else h[3].offset for h in lay.hidden]
@@ -51,7 +71,7 @@ class FusedEngine:
         geo[fused.G_HEAD] = fused.HEADS[pop.shape_config.policy]
         geo[fused.G_ACT_DIM], geo[fused.G_LAYERS] = pop.act_dim, lay.layers
         self.geo = np.array(geo, dtype=np.int64)
-        self.seg = np.array([[s.offset // units, s.rows] for s in lay.slots], dtype=np.int64)
+        self.seg = segment_ranges(lay)
         self.hf = np.array([pop.head.min_scale, float(lay.n_real[1])])
         am = pop.action_map
         self.bounds = torch.stack([am.low, am.high, am.log_range]).numpy().astype(np.float32)
@@ -71,7 +91,7 @@ class FusedEngine:
         self.cf = np.zeros((K, len(fused.C_NAMES)))
         self.fl = np.zeros((K, len(fused.F_NAMES)), dtype=np.int64)
         width = max(lay.obs_dim, units)
-        max_seg = max(s.rows for s in lay.slots) * units
+        max_seg = int((self.seg[:, 1] - self.seg[:, 0]).max())
         self.scratch = (
             np.zeros((2, n_pad), np.float32),
             np.zeros(max_seg, np.float32),
