@@ -179,7 +179,8 @@ def spec_for(variant: str, tasks: list[str], seeds: int, eval_episodes: int, epi
             "methods": list(METHODS),
             "seeds": seeds,
             "eval_episodes": eval_episodes,
-            "learner": variant_settings(variant),
+            # its committed runs were trained by the torch engine: a rerun resumes them
+            "learner": {**variant_settings(variant), "engine": "torch"},
             "tasks": [{"env": t, "episodes": episodes} for t in tasks],
         },
         f"ablation:{variant}",

@@ -74,11 +74,11 @@ DIAGNOSTIC: dict[str, dict[str, Any]] = {"joint_head": {"head_tensors": "joint"}
 ``joint_head``, the policy's output layer as one tensor pair for the t-momentum."""
 
 ENGINE: dict[str, dict[str, Any]] = {"fused": {"engine": "fused"}}
-"""The implementation of the step, not a setting of the learner: ``fused``, pporpe's
-numba kernel (:mod:`pporpe.online.fused`, 5x faster at 60 members) instead of its torch
-engine. The two agree to float rounding, so a config and its ``+fused`` twin are the
-same learner; the path table compares each config with the baseline of its own engine
-(:func:`baseline_of`)."""
+"""The implementation of the step, not a setting of the learner: the configs run by
+pporpe's torch engine (the engine of the first runs here) unless ``fused`` is added, the
+numba kernel (:mod:`pporpe.online.fused`, 5x faster at 60 members). The two agree to
+float rounding, so a config and its ``+fused`` twin are the same learner; the path table
+compares each config with the baseline of its own engine (:func:`baseline_of`)."""
 
 GROUPS: dict[str, dict[str, Any]] = {**TOWARD_TABLE_I, **DIAGNOSTIC, **ENGINE}
 """Every group a config name may add to ``testbed``, in the order of folder names."""
@@ -105,8 +105,9 @@ def settings_for(config: str) -> dict[str, Any]:
     Raises ValueError naming what is allowed."""
     from pporpe.online.config import TESTBED
 
+    base = {**TESTBED, "engine": "torch"}  # the committed runs' engine; +fused changes it
     if config == "paper":
-        return {**TESTBED, **PAPER_THROUGH_TESTBED}
+        return {**base, **PAPER_THROUGH_TESTBED}
     head, *groups = config.split("+")
     unknown = [g for g in groups if g not in GROUPS]
     if head != "testbed" or unknown or len(set(groups)) != len(groups):
@@ -114,7 +115,7 @@ def settings_for(config: str) -> dict[str, Any]:
             f"config must be 'paper', 'testbed' or 'testbed' with distinct groups of "
             f"{sorted(GROUPS)} joined by '+'; got {config!r}"
         )
-    out = dict(TESTBED)
+    out = base
     for g in groups:
         out.update(GROUPS[g])
     return out

@@ -222,7 +222,8 @@ def test_amsgrad_maximum_raw_or_bias_corrected() -> None:
 def test_critic_signal_actor_is_the_gradient_of_the_authors_critic_loss() -> None:
     """With lambda = 0, the value block receives grad[-A rho_dagger V(s_t)] (rho_dagger
     detached); the TD choice receives grad[delta^2 / 2]-style delta * grad[-V]."""
-    p = pop([cfg(critic_signal="actor", lambdas=(0.0, 0.0), method="ppo", lr=1e-2)], [2])
+    p = pop([cfg(critic_signal="actor", lambdas=(0.0, 0.0), method="ppo", lr=1e-2)], [2],
+            engine="torch")  # the torch engine's grad buffer; test_fused.py: fused = torch
     drive(p, 1)
     obs = p.state.pending.obs.clone()
     flat = p.state.params[1, 0].reshape(1, -1).clone().requires_grad_(True)

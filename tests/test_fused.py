@@ -3,7 +3,13 @@ float64, and the engine against the torch engine, buffer by buffer."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -348,3 +354,32 @@ def test_segment_ranges_hand_worked(split: bool) -> None:
         assert ranges == [*hidden, (32, 48), (48, 64), (64, 72), (72, 74), (74, 76), (76, 77)]
     else:
         assert ranges == [*hidden, (32, 72), (72, 80)]
+
+
+_RUN_IN_A_FRESH_PROCESS = """
+import hashlib, numpy as np
+from pporpe.online import OnlineConfig, OnlineLearner
+learner = OnlineLearner(4, -np.ones(2), np.ones(2), OnlineConfig(layers=2, units=16), seed=3)
+rng = np.random.default_rng(0)
+learner.begin_episode(rng.normal(size=4))
+for _ in range(40):
+    learner.step(float(rng.normal()), rng.normal(size=4), False, False)
+print(hashlib.sha1(learner.population.state.params.numpy().tobytes()).hexdigest())
+"""
+
+
+def test_same_numbers_whether_the_kernels_were_compiled_or_loaded(tmp_path: Path) -> None:
+    """A process with an empty numba cache (it compiles), one after it (it loads) and this
+    test's own process: the same parameters, bitwise, after 40 steps of the default
+    learner (swish, whose fastmath loops computed otherwise in a process that compiled)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    runs = [
+        subprocess.run([sys.executable, "-c", _RUN_IN_A_FRESH_PROCESS], env=env, check=True,
+                       capture_output=True, text=True).stdout.split()[-1]
+        for _ in range(2)
+    ]  # fmt: skip
+    assert any((tmp_path / "numba").rglob("*.nbi"))  # the first process filled the cache
+    namespace: dict[str, str] = {}
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        exec(_RUN_IN_A_FRESH_PROCESS, namespace)
+    assert runs[0] == runs[1] == out.getvalue().split()[-1]

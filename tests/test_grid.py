@@ -64,12 +64,16 @@ def test_repository_specs_parse() -> None:
     assert paper.envs == ["pendulum", "swingup", "halfcheetah", "ant"]
     assert {r.config.episodes for r in paper.runs} == {200}
     assert all(r.config.eval_episodes == 50 for r in paper.runs)
-    # The full-length spec is the same grid with HalfCheetah and Ant at 2000 episodes.
+    # results/paper was trained by the torch engine; a rerun resumes it as it was
+    assert {r.config.learner.engine for r in paper.runs} == {"torch"}
+    # The full-length spec is the same grid with HalfCheetah and Ant at 2000 episodes,
+    # trained by the default (fused) engine.
     full = load_spec(ROOT / "experiments" / "paper-full.toml")
     assert [r.key for r in full.runs] == [r.key for r in paper.runs]
     for a, b in zip(paper.runs, full.runs, strict=True):
         long = a.env in ("halfcheetah", "ant")
-        assert b.config == (replace(a.config, episodes=2000) if long else a.config)
+        fused = replace(a.config, learner=replace(a.config.learner, engine="fused"))
+        assert b.config == (replace(fused, episodes=2000) if long else fused)
     quick = load_spec(ROOT / "experiments" / "quick.toml")
     assert set(quick.methods) == {"ppo", "rb", "rpe"} and len(quick.runs) < len(paper.runs)
     # The paper's reproduction keeps the author's choices (those results/paper ran with),

@@ -93,7 +93,8 @@ def test_update_without_traces_is_gradient_of_surrogate_plus_td_loss() -> None:
     """With lambda = 0 the optimiser receives grad[-obj(rho, A) + delta^2/2] exactly: the
     trace r is the per-unit-signal gradient g, and the update's input is A g (policy) and
     delta g (value)."""
-    learner = make("rpe", lambdas=(0.0, 0.0), lr=1e-2)
+    # the torch engine's grad buffer (tests/test_fused.py holds the fused engine to it)
+    learner = make("rpe", lambdas=(0.0, 0.0), lr=1e-2, engine="torch")
     pop = learner.population
     trans = transitions(3)
     learner.begin_episode(np.zeros(3, np.float32))

@@ -17,7 +17,7 @@ from tiny import small_config as cfg
 from pporpe.nn.mlp import mlp
 from pporpe.online import config as config_module
 from pporpe.online.config import AUTHOR_CHOICES, TESTBED, TESTBED_WEIGHTS, OnlineConfig
-from pporpe.online.population import PopulationLearner
+from pporpe.online.population import ENGINES, PopulationLearner
 
 
 def student_t_logp64(raw: torch.Tensor, u: torch.Tensor, min_scale: float) -> torch.Tensor:
@@ -71,13 +71,16 @@ def one_step(p: PopulationLearner, log_ratio_shift: list[float]) -> tuple:
 
 
 def policy_gradient_of(p: PopulationLearner, k: int) -> torch.Tensor:
+    """This step's policy gradient per unit of A: the torch engine's ``grad`` buffer (the
+    fused engine keeps it in scratch; tests/test_fused.py holds it to the torch engine)."""
     return p.state.grad[0, k].reshape(-1)[p.lay.real_index[0]].double()
 
 
 @pytest.mark.parametrize("shift", [0.4, -0.4, 0.02])
 def test_weighted_score_is_the_clipped_weight_times_the_score(shift: float) -> None:
     """g = -w grad log pi per unit of A, w the test bed's clipped weight (float64 reference)."""
-    p = pop([cfg(method="ppo", policy_gradient="weighted_score", layer_norm_affine=True)], [3])
+    p = pop([cfg(method="ppo", policy_gradient="weighted_score", layer_norm_affine=True)], [3],
+            engine="torch")  # fmt: skip
     stats, theta, obs, u = one_step(p, [shift])
     ratio, adv = float(stats.ratio[0]), float(stats.adv[0])
     assert ratio == pytest.approx(math.exp(shift), rel=1e-5)
@@ -93,7 +96,7 @@ def test_weighted_score_differs_from_the_surrogate_only_where_the_clip_acts() ->
     surrogate gives 0 and the weighted score w grad log pi with |w| = 1 +- eps."""
     shifts = [0.02, 0.4, -0.4]
     configs = [cfg(method="ppo", policy_gradient=pg) for pg in ("surrogate", "weighted_score")]
-    p = pop([c for c in configs for _ in shifts], [5] * (2 * len(shifts)))
+    p = pop([c for c in configs for _ in shifts], [5] * (2 * len(shifts)), engine="torch")
     stats, *_ = one_step(p, shifts * 2)
     clipped = 0
     for j, _shift in enumerate(shifts):
@@ -172,10 +175,11 @@ def test_testbed_preset_is_the_test_beds_learner() -> None:
         assert f"``{name}=" in preset_doc, f"TESTBED's docstring does not explain {name}"
 
 
-def test_tau_one_keeps_the_target_equal_to_the_online_network() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_tau_one_keeps_the_target_equal_to_the_online_network(engine: str) -> None:
     """The test bed has no target network; t-soft with tau = 1 moves the target onto the
     online value network at every step (identity, bitwise)."""
-    p = pop([cfg(tau=1.0)], [9])
+    p = pop([cfg(tau=1.0)], [9], engine=engine)
     u = torch.tensor([[0.1, 0.3]])
     p.begin_episode([0], np.zeros((1, OBS)), forced_u=u)
     no = np.zeros(1, dtype=bool)

@@ -287,16 +287,18 @@ class OnlineConfig:
     or one of each per part of the output, location, scale and degrees of freedom
     (``"per_output"``, the author's test bed, whose head is three layers). The network
     computes the same either way."""
-    engine: Engine = "torch"
-    """Implementation of the step: batched torch operations (``"torch"``, default, the
-    reference) or one numba kernel per step (``"fused"``, pporpe.online.fused: about 10x
-    faster for a single run; its compiled code is cached on disk after the first use).
-    The two agree to float rounding, not bitwise, so this is part of a run's identity."""
+    engine: Engine = "fused"
+    """Implementation of the step: one numba kernel per step over all the members
+    (``"fused"``, default, pporpe.online.fused: 3-10x faster than torch, compiled once
+    and cached on disk) or batched torch operations (``"torch"``, the reference the
+    kernel is tested against). The two agree to float rounding, not bitwise, so this is
+    part of a run's identity."""
     compile: bool = True
-    """Compile the elementwise update (traces, td-AmsProp, t-soft) with ``torch.compile``:
-    about 2x faster per step on this project's 2-core CPU after a compile of a few seconds
-    per population shape. Compiled and eager updates agree to float rounding, not bitwise,
-    so this is part of a run's identity."""
+    """With ``engine="torch"``: compile its elementwise update (traces, td-AmsProp,
+    t-soft) with ``torch.compile``, about 2x faster per step on this project's 2-core CPU
+    after a compile of a few seconds per population shape. Compiled and eager updates
+    agree to float rounding, not bitwise, so this is part of a run's identity. The fused
+    engine ignores it."""
 
     def __post_init__(self) -> None:
         validate_surrogate_fields(self)

@@ -48,7 +48,8 @@ t-momentum weight, pass 2 over the same segment while it is in cache.
 
 Compiled artefacts are cached on disk by numba (``cache=True``): in the package's
 ``__pycache__`` folder, or where ``NUMBA_CACHE_DIR`` points; the next process loads them
-instead of compiling (:func:`warm_up` compiles or loads every kernel).
+instead of compiling (:func:`pporpe.online.fused_engine.warm_up` compiles or loads every
+kernel, once per process, when the first fused population is built).
 """
 
 from __future__ import annotations
@@ -525,8 +526,14 @@ def _tsoft_rate(
 
 @_jit_fm
 def _target_step(tgt: np.ndarray, val: np.ndarray, rate: np.float32) -> None:
-    for i in range(tgt.shape[0]):
-        tgt[i] = tgt[i] + (val[i] - tgt[i]) * rate
+    """``tgt <- tgt + rate (val - tgt)``, from the nearer end as ``torch.lerp``: exactly
+    ``val`` at rate 1 (the test bed's learner has no target network: ``tau=1``)."""
+    if rate < np.float32(0.5):
+        for i in range(tgt.shape[0]):
+            tgt[i] = tgt[i] + (val[i] - tgt[i]) * rate
+    else:
+        for i in range(tgt.shape[0]):
+            tgt[i] = val[i] - (val[i] - tgt[i]) * (np.float32(1.0) - rate)
 
 
 # ------------------------------------------------------------------------------ acting

@@ -3,6 +3,8 @@ per-member constants as matrices, and the calls of the kernels of :mod:`.fused`.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -16,13 +18,83 @@ from .config import OnlineConfig
 if TYPE_CHECKING:
     from .population import PopulationLearner
 
-__all__ = ["FusedEngine", "segment_ranges"]
+__all__ = ["FusedEngine", "compile_kernels", "segment_ranges", "warm_up"]
 
 
 def _np(t: Tensor, *shape: int) -> np.ndarray:
     """A numpy view (shared memory) of a contiguous CPU tensor, reshaped."""
     arr = t.numpy()
     return arr.reshape(shape) if shape else arr
+
+
+_KERNELS = (fused.fused_begin, fused.fused_step, fused.fused_forward)
+"""The kernels Python calls; each carries the code of every function it calls."""
+
+
+class _Loaded:
+    """Whether this process has loaded the kernels: :func:`warm_up`."""
+
+    done = False
+
+
+def _run_kernels() -> None:
+    """A one-member population of the smallest shape through a first action, a step and
+    both forwards: every kernel called once. The kernels' types do not depend on the
+    population's sizes, so this covers every population."""
+    from .population import PopulationLearner
+
+    pop = PopulationLearner(
+        1, -np.ones(1), np.ones(1), [OnlineConfig(layers=1, units=2)], [0], engine="fused"
+    )
+    obs, no = np.zeros((1, 1)), np.zeros(1, dtype=bool)
+    pop.begin_episode([0], obs)
+    pop.step(np.zeros(1), obs, no, no)
+    pop.act_deterministic(obs)
+    pop.value(obs)
+
+
+def compile_kernels() -> None:
+    """Compile every kernel into numba's disk cache (the body of :func:`warm_up`'s
+    subprocess)."""
+    _Loaded.done = True
+    _run_kernels()
+
+
+def _in_cache() -> bool:
+    """Whether numba's disk cache holds every kernel for today's source (its index is
+    empty where the source changed). numba has no public call for this; its version is
+    pinned in constraints.txt."""
+    for kernel in _KERNELS:
+        index = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
+        if index is None or not index._load_index():
+            return False
+    return True
+
+
+def warm_up() -> None:
+    """Load every kernel of :mod:`.fused` from numba's disk cache (:mod:`.fused`'s
+    docstring says where), once per process; if it is not there, compile it first in a
+    subprocess. :class:`~pporpe.online.population.PopulationLearner` calls this when it
+    is built with the fused engine, so the compile falls before a run's clock starts.
+
+    Why a subprocess: a process that compiled the kernels computes float rounding
+    differently from one that loaded them (measured with numba 0.68.1 on this project's
+    machine, with the swish activation only: the same cached code, loaded in both), so the
+    numbers of a run would depend on whether its process found the cache. A process that
+    trains only ever loads; where the cache cannot be written, every process compiles,
+    and they agree with one another. Tested in tests/test_fused.py.
+    """
+    if _Loaded.done:
+        return
+    _Loaded.done = True  # the one-member population below must not warm up again
+    try:
+        if not _in_cache():
+            code = "from pporpe.online.fused_engine import compile_kernels; compile_kernels()"
+            subprocess.run([sys.executable, "-c", code], check=True)
+        _run_kernels()  # loads them (compiles them where the cache cannot be written)
+    except BaseException:
+        _Loaded.done = False
+        raise
 
 
 def segment_ranges(lay: NetLayout) -> np.ndarray:

@@ -119,7 +119,7 @@ def _check_inputs(
 ) -> str:
     """The engine to use; ValueError naming a bad obs_dim, engine or seed count."""
     if engine is None:  # the members' own choice (they share it: SHARED_FIELDS)
-        engine = getattr(next(iter(configs), None), "engine", "torch")
+        engine = getattr(next(iter(configs), None), "engine", "fused")
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {list(ENGINES)}; got engine={engine!r}")
     if not (isinstance(obs_dim, int) and obs_dim >= 1):
@@ -202,8 +202,9 @@ class PopulationLearner:
         self._groups: list[tuple[tuple[Any, ...], Tensor]] = []
         self._fused: Any = None
         if engine == "fused":
-            from .fused_engine import FusedEngine
+            from .fused_engine import FusedEngine, warm_up
 
+            warm_up()
             self._fused = FusedEngine(self)
             compile_update = False
         self._upd, self._tgt = _update_functions(compile_update)
