@@ -1,24 +1,31 @@
-"""Throughput of the online learner: the environments, the scalar reference, and the
-population learner at several K, side by side in one process (torch on one thread).
-
-It measures, in alternating rounds so that machine noise hits every variant alike:
+"""Throughput of the online learner, side by side in one process (torch on one thread),
+in alternating rounds so that machine noise hits every variant alike:
 
 * raw environment steps/s of the four tasks (random actions);
-* the learner's cost per member-step on synthetic transitions of each task's size:
-  the scalar reference learner (pporpe 0.2.0's single-run learner, kept in
-  tests/reference_online.py) and the population learner at K = 1, 4, 15, 30, 60
-  (compiled update); as member-steps/s and as the ratio to the task's env step;
-* the estimated wall time of experiments/paper-full.toml on this machine from those rates.
+* the learner's µs per member-step on synthetic transitions of each task's size, for
+  populations of K = 1, 4, 8, 15, 30, 60 members of mixed methods with the default
+  config, by the fused engine (the default) and, at K = 1 and 30, by the torch engine
+  (the reference, and the step before the fused kernel); each also as a ratio to the
+  task's environment step;
+* the start-up of ``pporpe train``: the wall time of a one-episode InvertedPendulum run
+  minus its training time, with an empty numba cache (cold: the kernels compile) and
+  with the cache that run left (warm);
+* the best K (the cheapest member-step at HalfCheetah size, the grid's dominant cost)
+  and, from its rates, the estimated wall time of experiments/paper-full.toml here.
 
-    python benchmarks/throughput.py [--steps 150] [--rounds 3] [--ks 1 4 15 30 60]
-                                    [--workers 2] [--out FILE]
+    python benchmarks/throughput.py [--ks 1 4 8 15 30 60] [--torch-ks 1 30] [--rounds 3]
+                                    [--member-steps 600] [--workers 2] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -27,10 +34,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from _common import write_json
-from reference_online import ReferenceLearner
 
 from pporpe.envs import env_spec_summary, make_env
 from pporpe.experiments.grid import load_spec
@@ -39,6 +44,8 @@ from pporpe.online.population import PopulationLearner
 
 HERE = Path(__file__).resolve().parent
 TASKS = ("pendulum", "swingup", "halfcheetah", "ant")
+TORCH_SIZES = ("pendulum", "halfcheetah")
+"""The tasks whose sizes the torch engine is measured at (it takes minutes to compile)."""
 MAX_EPISODE_STEPS = 1000
 """The time limit of the four Bullet tasks under Gymnasium: an episode's length bound."""
 
@@ -67,22 +74,23 @@ def env_rate(task: str, steps: int, seed: int) -> float:
 
 
 class PopulationBench:
-    """A population of K members of mixed methods stepping on synthetic transitions."""
+    """K members of mixed methods (default config) stepping on synthetic transitions."""
 
-    def __init__(self, spec: dict[str, Any], k: int) -> None:
+    def __init__(self, spec: dict[str, Any], k: int, engine: str) -> None:
         methods = ("ppo", "rb", "rpe")
-        cfgs = [OnlineConfig(method=methods[i % 3], compile=True) for i in range(k)]
+        cfgs = [OnlineConfig(method=methods[i % 3], engine=engine) for i in range(k)]  # type: ignore[arg-type]
         self.k, self.obs_dim = k, spec["obs_dim"]
         self.learner = PopulationLearner(
             self.obs_dim, spec["action_low"], spec["action_high"], cfgs, list(range(k))
         )
         self.rng = np.random.default_rng(0)
         self.learner.begin_episode(range(k), self.rng.normal(size=(k, self.obs_dim)))
-        self.run(30)  # compile and warm up
+        self.run(30 * k)  # compile and warm up
 
-    def run(self, steps: int) -> float:
-        """Seconds per member-step over ``steps`` steps."""
+    def run(self, member_steps: int) -> float:
+        """Seconds per member-step over about ``member_steps`` member-steps (>= 5 steps)."""
         k, rng, no = self.k, self.rng, np.zeros(self.k, dtype=bool)
+        steps = max(5, member_steps // k)
         obs = rng.normal(size=(steps, k, self.obs_dim)).astype(np.float32)
         rewards = rng.normal(size=(steps, k))
         t0 = time.perf_counter()
@@ -91,26 +99,91 @@ class PopulationBench:
         return (time.perf_counter() - t0) / (steps * k)
 
 
-class ReferenceBench:
-    """The scalar reference learner (one run) on synthetic transitions."""
+STARTUP_COMMAND = (
+    "pporpe train --env pendulum --episodes 1 --eval-episodes 0 --quiet --force --out DIR"
+)
+"""The run whose start-up is timed (the task whose episode is shortest at the start)."""
 
-    def __init__(self, spec: dict[str, Any]) -> None:
-        torch.manual_seed(0)
-        self.obs_dim = spec["obs_dim"]
-        self.learner = ReferenceLearner(
-            self.obs_dim, spec["action_low"], spec["action_high"], OnlineConfig()
+
+def startup_seconds(cache_dir: str, out_dir: str) -> dict[str, float]:
+    """Wall time of :data:`STARTUP_COMMAND` in a fresh process with numba's cache in
+    ``cache_dir``, its training time (from its closing line) and the difference: the
+    time from process start to the first training step, plus the run folder's writes."""
+    pporpe = Path(sys.executable).with_name("pporpe")
+    argv = [str(pporpe), *STARTUP_COMMAND.split()[1:-1], out_dir]
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir}
+    t0 = time.perf_counter()
+    out = subprocess.run(argv, env=env, capture_output=True, text=True, check=True).stdout
+    wall = time.perf_counter() - t0
+    found = re.search(r"steps in ([0-9.]+) s", out)
+    if found is None:
+        raise RuntimeError(f"no training time in the output of {argv}:\n{out}")
+    train = float(found.group(1))
+    return {"wall_s": wall, "train_s": train, "startup_s": wall - train}
+
+
+def startup() -> dict[str, Any]:
+    """:func:`startup_seconds` with an empty numba cache, then with the one it left."""
+    with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
+        cold = startup_seconds(cache, out)
+        warm = startup_seconds(cache, out)
+    return {"command": STARTUP_COMMAND, "cold": cold, "warm": warm}
+
+
+def build(args: argparse.Namespace, specs: dict[str, Any]) -> dict[tuple[str, str, int], Any]:
+    """Every (task, engine, K) learner of the sweep."""
+    print("building the learners (the torch engine compiles every shape) ...", flush=True)
+    benches: dict[tuple[str, str, int], Any] = {}
+    for task in TASKS:
+        for k in args.ks:
+            benches[(task, "fused", k)] = PopulationBench(specs[task], k, "fused")
+        for k in args.torch_ks if task in TORCH_SIZES else ():
+            benches[(task, "torch", k)] = PopulationBench(specs[task], k, "torch")
+    return benches
+
+
+def measure(
+    args: argparse.Namespace, benches: dict[tuple[str, str, int], Any]
+) -> tuple[dict[str, list[float]], dict[tuple[str, str, int], list[float]]]:
+    """Alternating rounds: every task's environment, then every learner, per round."""
+    env_rounds: dict[str, list[float]] = {t: [] for t in TASKS}
+    cost_rounds: dict[tuple[str, str, int], list[float]] = {key: [] for key in benches}
+    for r in range(args.rounds):
+        for task in TASKS:
+            env_rounds[task].append(env_rate(task, args.env_steps, seed=r))
+        for key, bench in benches.items():
+            cost_rounds[key].append(bench.run(args.member_steps))
+        print(f"round {r + 1}/{args.rounds} done", flush=True)
+    return env_rounds, cost_rounds
+
+
+def result_rows(
+    env_s: dict[str, float], cost_rounds: dict[tuple[str, str, int], list[float]]
+) -> list[dict[str, Any]]:
+    """One row per (task, engine, K): medians, ratios to the env step and to torch K = 1."""
+    rows = []
+    for (task, engine, k), costs in cost_rounds.items():
+        cost = statistics.median(costs)
+        base = cost_rounds.get((task, "torch", 1))
+        rows.append(
+            {
+                "task": task,
+                "engine": engine,
+                "K": k,
+                "learner_us_per_member_step": cost * 1e6,
+                "member_steps_per_s": 1.0 / cost,
+                "learner_over_env_step": cost / env_s[task],
+                "speedup_vs_torch_k1": statistics.median(base) / cost if base else None,
+                "rounds_us": [c * 1e6 for c in costs],
+            }
         )
-        self.rng = np.random.default_rng(0)
-        self.learner.begin_episode(self.rng.normal(size=self.obs_dim).astype(np.float32))
-        self.run(30)
+    return rows
 
-    def run(self, steps: int) -> float:
-        """Seconds per step over ``steps`` steps."""
-        obs = self.rng.normal(size=(steps, self.obs_dim)).astype(np.float32)
-        t0 = time.perf_counter()
-        for t in range(steps):
-            self.learner.step(0.1, obs[t], False, False)
-        return (time.perf_counter() - t0) / steps
+
+def best_k(rows: list[dict[str, Any]], task: str = "halfcheetah") -> int:
+    """The K whose fused member-step is cheapest at ``task``'s size."""
+    fused = [r for r in rows if r["task"] == task and r["engine"] == "fused"]
+    return int(min(fused, key=lambda r: r["learner_us_per_member_step"])["K"])
 
 
 def paper_estimate(
@@ -134,111 +207,63 @@ def paper_estimate(
     return {
         "formula": (
             "hours = sum over tasks of runs x episodes x 1000 steps x (learner s per "
-            f"member-step at K = {k} + env s per step) / 3600 / workers ({workers})"
+            f"member-step, fused engine at K = {k} + env s per step) / 3600 / workers "
+            f"({workers})"
         ),
+        "K": k,
         "per_task": per_task,
         "cpu_hours": total,
         "wall_hours": total / workers,
     }
 
 
+def print_report(env_s: dict[str, float], rows: list[dict[str, Any]], est: dict[str, Any],
+                 start: dict[str, Any]) -> None:  # fmt: skip
+    print(f"\n{'task':12s} {'env us/step':>12s}")
+    for task in TASKS:
+        print(f"{task:12s} {env_s[task] * 1e6:12.0f}")
+    head = (f"{'task':12s} {'engine':7s} {'K':>3s} {'us/member-step':>15s} {'/env':>6s} "
+            f"{'vs torch K=1':>13s}")  # fmt: skip
+    print("\n" + head + "\n" + "-" * len(head))
+    for r in rows:
+        vs = "-" if r["speedup_vs_torch_k1"] is None else f"{r['speedup_vs_torch_k1']:.1f}x"
+        print(f"{r['task']:12s} {r['engine']:7s} {r['K']:3d} "
+              f"{r['learner_us_per_member_step']:15.0f} {r['learner_over_env_step']:6.2f} "
+              f"{vs:>13s}")  # fmt: skip
+    print(f"\nstart-up of `{start['command']}`: cold {start['cold']['startup_s']:.1f} s, "
+          f"warm {start['warm']['startup_s']:.1f} s")  # fmt: skip
+    print(f"\nbest K {est['K']}; estimated wall time of experiments/paper-full.toml: "
+          f"{est['wall_hours']:.1f} h ({est['cpu_hours']:.1f} CPU hours)")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=150, help="timed steps per measurement")
+    parser.add_argument("--ks", type=int, nargs="+", default=[1, 4, 8, 15, 30, 60])
+    parser.add_argument("--torch-ks", type=int, nargs="+", default=[1, 30])
+    parser.add_argument("--member-steps", type=int, default=600, help="per measurement")
     parser.add_argument("--env-steps", type=int, default=3000, help="timed raw env steps")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds")
-    parser.add_argument("--ks", type=int, nargs="+", default=[1, 4, 15, 30, 60])
-    parser.add_argument(
-        "--sizes",
-        nargs="+",
-        default=["pendulum", "halfcheetah"],
-        help="tasks whose sizes get the K sweep (the others: the estimate's K only)",
-    )
-    parser.add_argument("--k", type=int, default=15, help="K of the paper-grid estimate")
     parser.add_argument("--workers", type=int, default=2, help="workers of the estimate")
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     args = parser.parse_args()
+    if min(args.ks + args.torch_ks) < 1 or args.rounds < 1 or args.member_steps < 1:
+        parser.error("--ks, --torch-ks, --rounds and --member-steps must be >= 1")
     torch.set_num_threads(1)
     torch._dynamo.config.cache_size_limit = 256  # every shape keeps its compiled update
-
+    start = startup()
     specs = {t: spaces(t) for t in TASKS}
-    print("building learners (compiling the update for every shape) ...", flush=True)
-    benches: dict[tuple[str, str], Any] = {}
-    for task in TASKS:
-        ks = sorted({*args.ks, args.k}) if task in args.sizes else [args.k]
-        if task in args.sizes:
-            benches[(task, "reference")] = ReferenceBench(specs[task])
-        for k in ks:
-            benches[(task, f"K={k}")] = PopulationBench(specs[task], k)
-    env_rounds: dict[str, list[float]] = {t: [] for t in TASKS}
-    cost_rounds: dict[tuple[str, str], list[float]] = {key: [] for key in benches}
-    for r in range(args.rounds):
-        for task in TASKS:
-            env_rounds[task].append(env_rate(task, args.env_steps, seed=r))
-        for key, bench in benches.items():
-            cost_rounds[key].append(bench.run(args.steps))
-        print(f"round {r + 1}/{args.rounds} done", flush=True)
-
+    env_rounds, cost_rounds = measure(args, build(args, specs))
     env_s = {t: 1.0 / statistics.median(v) for t, v in env_rounds.items()}
-    rows = []
-    for (task, variant), costs in cost_rounds.items():
-        cost = statistics.median(costs)
-        rows.append(
-            {
-                "task": task,
-                "variant": variant,
-                "learner_us_per_member_step": cost * 1e6,
-                "member_steps_per_s": 1.0 / cost,
-                "learner_over_env_step": cost / env_s[task],
-                "rounds_us": [c * 1e6 for c in costs],
-            }
-        )
-    print()
-    print(f"{'task':12s} {'raw env steps/s':>16s} {'env us/step':>12s}")
-    for task in TASKS:
-        print(f"{task:12s} {1 / env_s[task]:16.0f} {env_s[task] * 1e6:12.0f}")
-    print()
-    header = (
-        f"{'task':12s} {'learner':10s} {'us/member-step':>15s} {'member-steps/s':>15s} "
-        f"{'learner/env':>12s} {'vs K=1':>7s}"
-    )
-    print(header)
-    print("-" * len(header))
-    for row in rows:
-        k1 = next((x for x in rows if x["task"] == row["task"] and x["variant"] == "K=1"), None)
-        speedup = float("nan")
-        if k1 is not None:
-            speedup = k1["learner_us_per_member_step"] / row["learner_us_per_member_step"]
-        print(
-            f"{row['task']:12s} {row['variant']:10s} {row['learner_us_per_member_step']:15.0f} "
-            f"{row['member_steps_per_s']:15.0f} {row['learner_over_env_step']:12.2f} "
-            f"{speedup:7.2f}"
-        )
-        row["speedup_vs_k1"] = speedup
-    learner_s = {t: statistics.median(cost_rounds[(t, f"K={args.k}")]) for t in TASKS}
-    est = paper_estimate(env_s, learner_s, args.workers, args.k)
-    print()
-    print("estimated wall time of experiments/paper-full.toml on this machine:")
-    print("  " + est["formula"])
-    for task, row in est["per_task"].items():
-        steps = row["member_steps"] / row["runs"]
-        print(
-            f"  {task:12s} {row['runs']:3d} runs x {steps:9.0f} steps x "
-            f"{row['s_per_member_step'] * 1e3:.3f} ms = {row['cpu_hours']:6.2f} CPU hours"
-        )
-    print(f"  total {est['cpu_hours']:.1f} CPU hours -> {est['wall_hours']:.1f} hours wall")
-    path = write_json(
-        args.out,
-        {
-            "steps": args.steps,
-            "rounds": args.rounds,
-            "env_steps_per_s": {t: 1 / s for t, s in env_s.items()},
-            "env_rounds_steps_per_s": env_rounds,
-            "rows": rows,
-            "paper_grid_estimate": est,
-        },
-    )
-    print(f"wrote {path}")
+    rows = result_rows(env_s, cost_rounds)
+    k = best_k(rows)
+    learner_s = {t: statistics.median(cost_rounds[(t, "fused", k)]) for t in TASKS}
+    est = paper_estimate(env_s, learner_s, args.workers, k)
+    print_report(env_s, rows, est, start)
+    payload = {"rounds": args.rounds, "member_steps": args.member_steps,
+               "env_steps_per_s": {t: 1 / s for t, s in env_s.items()},
+               "env_rounds_steps_per_s": env_rounds, "rows": rows, "best_k": k,
+               "startup": start, "paper_grid_estimate": est}  # fmt: skip
+    print(f"wrote {write_json(args.out, payload)}")
 
 
 if __name__ == "__main__":

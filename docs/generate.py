@@ -326,20 +326,46 @@ def ablation_page(root: Path) -> str:
 
 
 def throughput_table(data: dict[str, Any]) -> list[str]:
-    """Learner cost per member-step (µs) per task and population size K, and the env step."""
-    cells: dict[str, dict[str, float]] = {}
+    """Learner µs per member-step by task, engine and K, with its ratio to the env step."""
+    ks = sorted({r["K"] for r in data["rows"]})
+    cells: dict[tuple[str, str], dict[int, dict[str, Any]]] = {}
     for r in data["rows"]:
-        cells.setdefault(r["task"], {})[r["variant"]] = r["learner_us_per_member_step"]
-    ks = sorted({v for c in cells.values() for v in c if v != "reference"},
-                key=lambda v: int(v.split("=")[1]))  # fmt: skip
-    head = ["task", "scalar 0.2", *[k.replace("=", " = ") for k in ks], "env step"]
+        cells.setdefault((r["task"], r["engine"]), {})[r["K"]] = r
+    head = ["task", "engine", *[f"K = {k}" for k in ks], "env step"]
     rows = []
-    for task, got in cells.items():
-        values = [got.get(v) for v in ("reference", *ks)]
+    for (task, engine), got in cells.items():
         env_us = 1e6 / data["env_steps_per_s"][task]
-        rows.append([TASKS.get(task, task), *[f"{x:.0f}" if x else "-" for x in values],
-                     f"{env_us:.0f}"])  # fmt: skip
-    return table(head, rows, ["---", *["---:"] * (len(head) - 1)])
+        values = [
+            f"{got[k]['learner_us_per_member_step']:.0f} ({got[k]['learner_over_env_step']:.2f}x)"
+            if k in got else "-"
+            for k in ks
+        ]  # fmt: skip
+        rows.append([TASKS.get(task, task), engine, *values, f"{env_us:.0f}"])
+    return table(head, rows, ["---", "---", *["---:"] * (len(head) - 2)])
+
+
+def speedup_line(data: dict[str, Any]) -> str:
+    """The fused engine against the torch engine at K = 1, per task measured with both."""
+    parts = [
+        f"{TASKS.get(r['task'], r['task'])} {r['speedup_vs_torch_k1']:.1f}x"
+        for r in data["rows"]
+        if r["engine"] == "fused" and r["K"] == 1 and r["speedup_vs_torch_k1"]
+    ]
+    return (
+        "A single run (K = 1) by the fused engine against the torch engine, same run: "
+        + ", ".join(parts) + "."
+    )
+
+
+def startup_line(data: dict[str, Any]) -> str:
+    start = data["startup"]
+    return (
+        f"Start-up of `{start['command']}` (its wall time minus its training time: the "
+        f"imports, building the task and the learner, and loading or compiling the fused "
+        f"kernels): {start['cold']['startup_s']:.1f} s with an empty numba cache (the "
+        f"kernels compile, once per machine and version), {start['warm']['startup_s']:.1f} s "
+        f"with the cache that left."
+    )
 
 
 def estimate_lines(data: dict[str, Any]) -> list[str]:
@@ -348,39 +374,37 @@ def estimate_lines(data: dict[str, Any]) -> list[str]:
         f"{TASKS.get(t, t)} {v['cpu_hours']:.1f}" for t, v in est["per_task"].items()
     )
     return [
-        f"From these rates, the benchmark's estimate for the paper's full grid "
-        f"(`experiments/paper-full.toml`): {est['wall_hours']:.1f} hours on 2 workers, "
-        f"{est['cpu_hours']:.1f} CPU hours ({per_task}). Formula: {est['formula']}.",
+        f"The best population size is K = {data['best_k']} (the cheapest member-step at "
+        f"HalfCheetah's size), the default of `pporpe reproduce --population`. From its "
+        f"rates, the estimate for the paper's full grid (`experiments/paper-full.toml`): "
+        f"{est['wall_hours']:.1f} hours on 2 workers, {est['cpu_hours']:.1f} CPU hours "
+        f"({per_task}). Formula: {est['formula']}.",
     ]
 
 
 def throughput_page(root: Path) -> str:
-    main = read_json(root, "benchmarks/results/throughput.json")
-    k30 = read_json(root, "benchmarks/results/throughput_k30.json")
+    data = read_json(root, "benchmarks/results/throughput.json")
     lines = [
         "# Throughput of the online learner",
         "",
-        banner("benchmarks/results/throughput.json", "throughput_k30.json"),
+        banner("benchmarks/results/throughput.json"),
         "",
         "Microseconds of learner work per member-step of a population of K online runs "
         "(`pporpe.online.PopulationLearner`; every member its own config, seed and "
-        "environment, all sharing each kernel launch), against pporpe 0.2's scalar single-run "
-        "learner (*scalar 0.2*) in the same process; medians of alternating rounds. *env "
-        "step* is the PyBullet task's own step. Lower is better.",
+        "environment), by the fused engine (the default: one numba kernel per step) and "
+        "the torch engine (the reference), and in brackets as a multiple of the task's "
+        "environment step (*env step*, µs, measured in the same run); medians of "
+        "alternating rounds. Lower is better.",
         "",
-        machine_line(main["machine"], main["command"]),
+        machine_line(data["machine"], data["command"]),
         "",
-        *throughput_table(main),
+        *throughput_table(data),
         "",
-        *estimate_lines(main),
+        speedup_line(data),
         "",
-        "A second run at K = 30, the default population of `pporpe reproduce`:",
+        startup_line(data),
         "",
-        machine_line(k30["machine"], k30["command"]),
-        "",
-        *throughput_table(k30),
-        "",
-        *estimate_lines(k30),
+        *estimate_lines(data),
     ]
     return "\n".join(lines) + "\n"
 

@@ -20,7 +20,6 @@ SOURCES = [
     "benchmarks/results/pendulum_behaviour.json",
     "benchmarks/results/pendulum_behaviour_pendulum.json",
     "benchmarks/results/throughput.json",
-    "benchmarks/results/throughput_k30.json",
     "benchmarks/results/vs_sb3.json",
 ]
 

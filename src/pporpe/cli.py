@@ -299,6 +299,8 @@ def _add_evaluate(sub: Any) -> None:
 
 def _add_reproduce(sub: Any) -> None:
     """The ``pporpe reproduce`` subcommand."""
+    from .experiments.reproduce import DEFAULT_POPULATION
+
     rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
     rp.add_argument("spec", help="grid spec, e.g. experiments/quick.toml or experiments/paper.toml")
     rp.add_argument("--out", required=True, help="results folder (re-run to resume)")
@@ -323,7 +325,10 @@ def _add_reproduce(sub: Any) -> None:
         "--population",
         type=_positive_int,
         default=None,
-        help="online runs of one task trained at once by one worker (default 30)",
+        help=(
+            f"online runs of one task trained at once by one worker (default "
+            f"{DEFAULT_POPULATION}, the fused engine's best; 30 for the torch engine)"
+        ),
     )
     rp.add_argument(
         "--checkpoint-seconds",

@@ -33,10 +33,12 @@ from .progress import GridProgress
 
 __all__ = ["GridOutcome", "Job", "merged_grid_summary", "plan_jobs", "reproduce", "run_job"]
 
-DEFAULT_POPULATION = 30
-"""Online runs trained at once by one worker: benchmarks/throughput.py measured the cost
-per member-step falling 3.2x from K = 1 to 15 and 4.1-4.7x to K = 30 (0.62-0.69 ms), with
-little more to gain at K = 60; 30 is also the paper's runs per task."""
+DEFAULT_POPULATION = 4
+"""Online runs trained at once by one worker: the best K of benchmarks/throughput.py
+(benchmarks/results/throughput.json), where the fused engine's member-step is cheapest
+(at K = 4 its members' state stays in cache; from K = 8 it does not). The torch engine
+gains from larger populations instead (its cost per member-step falls about 4x from
+K = 1 to 30): pass ``--population 30`` for a grid it trains."""
 
 DEFAULT_CHECKPOINT_SECONDS = 60.0
 """At most one population checkpoint a minute: a population's state is megabytes."""

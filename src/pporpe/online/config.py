@@ -289,7 +289,7 @@ class OnlineConfig:
     computes the same either way."""
     engine: Engine = "fused"
     """Implementation of the step: one numba kernel per step over all the members
-    (``"fused"``, default, pporpe.online.fused: 3-10x faster than torch, compiled once
+    (``"fused"``, default, pporpe.online.fused: 3-14x faster than torch, compiled once
     and cached on disk) or batched torch operations (``"torch"``, the reference the
     kernel is tested against). The two agree to float rounding, not bitwise, so this is
     part of a run's identity."""
