@@ -148,6 +148,13 @@ class BatchConfig:
     """Test episodes after training (>= 0; the paper's score is the median of 50)."""
 
     def __post_init__(self) -> None:
+        self._check_run_fields()
+        self._check_optimiser_fields()
+        self._check_policy_fields()
+
+    def _check_run_fields(self) -> None:
+        """The task, the surrogate, that the rates are numbers, the seed, budget, rollout
+        shape and evaluation."""
         require(isinstance(self.env, str) and bool(self.env), "env", self.env, "a task name")
         validate_surrogate_fields(self)
         for name in ("gamma", "gae_lambda", "lr", "adam_eps"):
@@ -169,6 +176,8 @@ class BatchConfig:
             "an int >= 0",
         )
         require(self.vec_env in get_args(VecEnvKind), "vec_env", self.vec_env, "'sync' or 'async'")
+    def _check_optimiser_fields(self) -> None:
+        """Discount, GAE, learning rate, loss coefficients and limits."""
         require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
         require(0.0 <= self.gae_lambda <= 1.0, "gae_lambda", self.gae_lambda, "in [0, 1]")
         require(0.0 < self.lr < math.inf, "lr", self.lr, "a finite number > 0")
@@ -196,6 +205,8 @@ class BatchConfig:
             self.adv_norm,
             f"one of {list(get_args(AdvNorm))}",
         )
+    def _check_policy_fields(self) -> None:
+        """Normalisation and clipping of the task's signals, the policy's scale and its network."""
         for name in ("normalize_obs", "normalize_reward", "bootstrap_truncated", "layer_norm"):
             v = getattr(self, name)
             require(isinstance(v, bool), name, v, "True or False")

@@ -172,52 +172,69 @@ class BatchLearner:
 
         Returns the episodes that ended during the rollout.
         """
-        cfg, model, buf, norm = self.cfg, self.model, self.buffer, self.normalizer
         finished: list[FinishedEpisode] = []
         obs = torch.from_numpy(self._obs)
-        for t in range(cfg.n_steps):
-            raw = model.raw(obs)
-            u = model.sample(raw)
-            buf.obs[t] = obs
-            buf.u[t] = u
-            buf.logp[t] = model.head.log_prob(raw, u)
-            buf.values[t] = model.value(obs)
-            action = model.to_action(u).numpy()
-            raw_next, reward, term, trunc, info = self.envs.step(action)
-            term = np.asarray(term, dtype=bool)
-            trunc = np.asarray(trunc, dtype=bool) & ~term
-            done = term | trunc
-            reward = np.asarray(reward, dtype=np.float64)
-            if not (np.all(np.isfinite(reward)) and np.all(np.isfinite(raw_next))):
-                raise NonFiniteError(f"non-finite reward or observation at step {self.total_steps}")
-            self.total_steps += cfg.n_envs
-            self.ep_ret += reward
-            self.ep_len += 1
-            buf.rewards[t] = torch.from_numpy(norm.reward(reward, done))
-            buf.terminated[t] = torch.from_numpy(term)
-            buf.truncated[t] = torch.from_numpy(trunc)
-            self._raw_obs = np.asarray(raw_next)
-            obs = torch.from_numpy(norm.obs(self._raw_obs, update=True))
-            if done.any():
-                idx = np.nonzero(trunc)[0]
-                if idx.size:
-                    final = np.stack([np.asarray(info["final_obs"][i]) for i in idx])
-                    fv = model.value(torch.from_numpy(norm.obs(final, update=False)))
-                    buf.next_values[t, torch.from_numpy(idx)] = fv
-                for i in np.nonzero(done)[0]:
-                    finished.append(
-                        FinishedEpisode(
-                            int(i),
-                            float(self.ep_ret[i]),
-                            int(self.ep_len[i]),
-                            self.total_steps,
-                            bool(term[i]),
-                        )
-                    )
-                self.ep_ret[done] = 0.0
-                self.ep_len[done] = 0
+        for t in range(self.cfg.n_steps):
+            obs = self._rollout_step(t, obs, finished)
         self._obs = obs.numpy()
-        last_value = model.value(obs)
+        self._compute_advantages(self.model.value(obs))
+        return finished
+
+    def _rollout_step(self, t: int, obs: Tensor, finished: list[FinishedEpisode]) -> Tensor:
+        """Act in every environment at ``obs``, store step ``t`` in the buffer, append the
+        episodes that ended to ``finished``; return the next (normalised) observations."""
+        cfg, model, buf, norm = self.cfg, self.model, self.buffer, self.normalizer
+        raw = model.raw(obs)
+        u = model.sample(raw)
+        buf.obs[t] = obs
+        buf.u[t] = u
+        buf.logp[t] = model.head.log_prob(raw, u)
+        buf.values[t] = model.value(obs)
+        action = model.to_action(u).numpy()
+        raw_next, reward, term, trunc, info = self.envs.step(action)
+        term = np.asarray(term, dtype=bool)
+        trunc = np.asarray(trunc, dtype=bool) & ~term
+        done = term | trunc
+        reward = np.asarray(reward, dtype=np.float64)
+        if not (np.all(np.isfinite(reward)) and np.all(np.isfinite(raw_next))):
+            raise NonFiniteError(f"non-finite reward or observation at step {self.total_steps}")
+        self.total_steps += cfg.n_envs
+        self.ep_ret += reward
+        self.ep_len += 1
+        buf.rewards[t] = torch.from_numpy(norm.reward(reward, done))
+        buf.terminated[t] = torch.from_numpy(term)
+        buf.truncated[t] = torch.from_numpy(trunc)
+        self._raw_obs = np.asarray(raw_next)
+        next_obs = torch.from_numpy(norm.obs(self._raw_obs, update=True))
+        if done.any():  # after the update of the statistics, which normalise the final obs
+            finished += self._end_episodes(t, term, trunc, info)
+        return next_obs
+
+    def _end_episodes(
+        self, t: int, term: np.ndarray, trunc: np.ndarray, info: dict[str, Any]
+    ) -> list[FinishedEpisode]:
+        """V of the final observation of every truncated episode into the buffer's step t;
+        the episodes that ended, with their counters reset."""
+        buf, norm, model = self.buffer, self.normalizer, self.model
+        done = term | trunc
+        idx = np.nonzero(trunc)[0]
+        if idx.size:
+            final = np.stack([np.asarray(info["final_obs"][i]) for i in idx])
+            fv = model.value(torch.from_numpy(norm.obs(final, update=False)))
+            buf.next_values[t, torch.from_numpy(idx)] = fv
+        ended = [
+            FinishedEpisode(
+                int(i), float(self.ep_ret[i]), int(self.ep_len[i]), self.total_steps, bool(term[i])
+            )
+            for i in np.nonzero(done)[0]
+        ]
+        self.ep_ret[done] = 0.0
+        self.ep_len[done] = 0
+        return ended
+
+    def _compute_advantages(self, last_value: Tensor) -> None:
+        """GAE advantages and returns of the filled buffer (``last_value``: V after it)."""
+        cfg, buf = self.cfg, self.buffer
         # V of the state each step reached: the next step's V(s_{t+1}) unless the episode
         # ended (then V(final obs) was stored above for truncations; terminations ignore it)
         nxt = torch.cat([buf.values[1:], last_value[None]])
@@ -235,7 +252,6 @@ class BatchLearner:
         )
         buf.advantages.copy_(adv)
         buf.returns.copy_(ret)
-        return finished
 
     @torch.no_grad()
     def act_deterministic(self, obs: Any) -> np.ndarray:

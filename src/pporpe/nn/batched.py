@@ -64,6 +64,16 @@ class TensorSlot:
         return math.prod(self.shape)
 
 
+def _next_slot(
+    placed: list[TensorSlot], shape: tuple[int, ...], units: int, real_value: int | None
+) -> TensorSlot:
+    """The slot of a tensor of ``shape`` after the ``placed`` ones: at the next row of
+    ``units`` elements; ``real_value`` the value network's real elements (default: all)."""
+    offset = sum(s.rows for s in placed) * units
+    n = math.prod(shape)
+    return TensorSlot(offset, shape, -(-n // units), (n, n if real_value is None else real_value))
+
+
 class NetLayout:
     """Padded common layout of the policy / value / target networks of one population.
 
@@ -87,38 +97,14 @@ class NetLayout:
     ) -> None:
         self.obs_dim, self.raw_dim = obs_dim, raw_dim
         self.layers, self.units, self.layer_norm = layers, units, layer_norm
-        slots: list[TensorSlot] = []
-        offset = 0
-
-        def add(shape: tuple[int, ...], real_value: int | None = None) -> TensorSlot:
-            nonlocal offset
-            n = math.prod(shape)
-            rows = -(-n // units)
-            slot = TensorSlot(offset, shape, rows, (n, n if real_value is None else real_value))
-            slots.append(slot)
-            offset += rows * units
-            return slot
-
-        self.hidden: list[tuple[TensorSlot, TensorSlot, TensorSlot | None, TensorSlot | None]] = []
-        width = obs_dim
-        for _ in range(layers):
-            w = add((units, width))
-            b = add((units,))
-            g = add((units,)) if layer_norm else None
-            be = add((units,)) if layer_norm else None
-            self.hidden.append((w, b, g, be))
-            width = units
-        self.out_w = add((raw_dim, units), real_value=units)
-        self.out_b = add((raw_dim,), real_value=1)
-        self.slots: tuple[TensorSlot, ...] = tuple(slots)
-        self.n_pad = offset
-        self.n_rows = offset // units
+        self._place_tensors()
+        self.n_rows = self.n_pad // units
         seg = torch.empty(self.n_rows, dtype=torch.int64)
-        for i, s in enumerate(slots):
+        for i, s in enumerate(self.slots):
             seg[s.offset // units : s.offset // units + s.rows] = i
         self.row_seg = seg
         """Segment (tensor) index of every row of ``units`` elements."""
-        self.segments: tuple[tuple[int, int], ...] = tuple(s.real for s in slots)
+        self.segments: tuple[tuple[int, int], ...] = tuple(s.real for s in self.slots)
         """Real elements (policy, value) of every segment: the tensors of the t-momentum."""
         self.col_seg: Tensor | None = None
         """With ``head_parts``: the segment of every column of the output bias's row."""
@@ -127,6 +113,33 @@ class NetLayout:
         if head_parts is not None:
             self._split_head(head_parts)
         self.n_seg = len(self.segments)
+        self._index_real_elements()
+
+    def _place_tensors(self) -> None:
+        """Every parameter tensor at its offset, each starting a row of ``units``: the hidden
+        layers' weight, bias and LayerNorm scale and shift, then the output layer."""
+        units, slots = self.units, list[TensorSlot]()
+        shapes: list[tuple[tuple[int, ...], int | None]] = []
+        width = self.obs_dim
+        for _ in range(self.layers):
+            shapes += [((units, width), None), ((units,), None)]
+            shapes += [((units,), None)] * (2 if self.layer_norm else 0)
+            width = units
+        shapes += [((self.raw_dim, units), units), ((self.raw_dim,), 1)]
+        for shape, real_value in shapes:
+            slots.append(_next_slot(slots, shape, units, real_value))
+        per_layer = 4 if self.layer_norm else 2
+        self.hidden: list[tuple[TensorSlot, TensorSlot, TensorSlot | None, TensorSlot | None]] = []
+        for first in range(0, self.layers * per_layer, per_layer):
+            w, b = slots[first], slots[first + 1]
+            g, be = (slots[first + 2], slots[first + 3]) if self.layer_norm else (None, None)
+            self.hidden.append((w, b, g, be))
+        self.out_w, self.out_b = slots[-2], slots[-1]
+        self.slots: tuple[TensorSlot, ...] = tuple(slots)
+        self.n_pad = sum(s.rows for s in slots) * units
+
+    def _index_real_elements(self) -> None:
+        slots, units = self.slots, self.units
         self.n_real = (sum(s.real[0] for s in slots), sum(s.real[1] for s in slots))
         """Number of real parameters of the (policy, value) network."""
         idx: list[Tensor] = []

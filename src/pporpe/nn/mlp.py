@@ -81,17 +81,7 @@ def mlp(
     Raises:
         ValueError: naming the bad parameter and, where relevant, the allowed values.
     """
-    check_positive_int("in_dim", in_dim)
-    check_positive_int("out_dim", out_dim)
-    check_positive_int("layers", layers)
-    check_positive_int("units", units)
-    if activation not in ACTIVATIONS:
-        raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
-    if init not in INITS:
-        raise ValueError(f"init must be one of {INITS}, got {init!r}")
-    if output_gain is not None and not (math.isfinite(output_gain) and output_gain >= 0):
-        raise ValueError(f"output_gain must be a finite number >= 0, got {output_gain!r}")
-
+    _check_mlp_args(in_dim, out_dim, layers, units, activation, init, output_gain)
     modules: list[nn.Module] = []
     hidden: list[nn.Linear] = []
     width = in_dim
@@ -105,7 +95,32 @@ def mlp(
         width = units
     output = nn.Linear(width, out_dim)
     modules.append(output)
+    _initialise(hidden, output, activation, init, output_gain)
+    return nn.Sequential(*modules)
 
+
+def _check_mlp_args(
+    in_dim: int, out_dim: int, layers: int, units: int, activation: str, init: str,
+    output_gain: float | None,
+) -> None:  # fmt: skip
+    """ValueError naming the first bad argument of :func:`mlp`."""
+    check_positive_int("in_dim", in_dim)
+    check_positive_int("out_dim", out_dim)
+    check_positive_int("layers", layers)
+    check_positive_int("units", units)
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
+    if init not in INITS:
+        raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    if output_gain is not None and not (math.isfinite(output_gain) and output_gain >= 0):
+        raise ValueError(f"output_gain must be a finite number >= 0, got {output_gain!r}")
+
+
+def _initialise(
+    hidden: list[nn.Linear], output: nn.Linear, activation: str, init: str,
+    output_gain: float | None,
+) -> None:  # fmt: skip
+    """:func:`mlp`'s ``init`` and ``output_gain`` (the module docstring says what they do)."""
     if init == "orthogonal":
         for linear in hidden:
             nn.init.orthogonal_(linear.weight, gain=_GAINS[activation])
@@ -116,7 +131,6 @@ def mlp(
         with torch.no_grad():
             output.weight.mul_(output_gain)
             output.bias.zero_()
-    return nn.Sequential(*modules)
 
 
 def mlp_num_params(

@@ -151,27 +151,55 @@ class OnlineTrainer:
     # -- one step of every run ------------------------------------------------------
     def advance(self) -> dict[int, Progress]:
         """One environment step of every busy run, learnt in one batched update."""
-        learner, K = self.learner, self.capacity
         busy = [k for k, s in enumerate(self.slots) if s is not None]
-        reports: dict[int, Progress] = {}
         errors: dict[int, str] = {}
-        starting = [k for k in busy if self._slot(k).action is None]
-        if starting:
-            first_obs = []
-            for k in starting:
-                s = self._slot(k)
-                seed = s.cfg.seed if s.episodes == 0 else None
-                obs = s.env.reset(seed=seed)[0]
-                if not np.all(np.isfinite(obs)):
-                    errors[k] = f"non-finite observation at episode {s.episodes}, step 0"
-                first_obs.append(np.nan_to_num(obs))
-            actions = learner.begin_episode(starting, np.stack(first_obs))
-            for k, a in zip(starting, actions, strict=True):
-                self._slot(k).action = a
-        reward = np.zeros(K)
-        next_obs = np.zeros((K, learner.obs_dim))
-        terminated = np.zeros(K, dtype=bool)
-        truncated = np.zeros(K, dtype=bool)
+        self._begin_episodes([k for k in busy if self._slot(k).action is None], errors)
+        transition = self._step_environments(busy, errors)
+        stats, next_actions = self.learner.step(*transition)
+        adv_ok = torch.isfinite(stats.adv).numpy()
+        _, _, terminated, truncated, _ = transition
+        reports: dict[int, Progress] = {}
+        for k in busy:
+            s = self._slot(k)
+            if k in errors:
+                reports[k] = Progress([], error=errors[k])
+            elif not adv_ok[k]:
+                msg = f"non-finite loss (advantage) at episode {s.episodes}, step {s.length}"
+                reports[k] = Progress([], error=msg)
+            else:
+                s.steps.append(stats.member(k))
+                s.action = next_actions[k]
+                ended = self._end_episode(s, bool(terminated[k] or truncated[k]))
+                if ended is not None:
+                    reports[k] = ended
+        return reports
+
+    def _begin_episodes(self, starting: list[int], errors: dict[int, str]) -> None:
+        """Reset the environments of the runs in ``starting`` (seeded at a run's first
+        episode) and draw their first actions; a non-finite observation goes to ``errors``."""
+        if not starting:
+            return
+        first_obs = []
+        for k in starting:
+            s = self._slot(k)
+            seed = s.cfg.seed if s.episodes == 0 else None
+            obs = s.env.reset(seed=seed)[0]
+            if not np.all(np.isfinite(obs)):
+                errors[k] = f"non-finite observation at episode {s.episodes}, step 0"
+            first_obs.append(np.nan_to_num(obs))
+        actions = self.learner.begin_episode(starting, np.stack(first_obs))
+        for k, a in zip(starting, actions, strict=True):
+            self._slot(k).action = a
+
+    def _step_environments(
+        self, busy: list[int], errors: dict[int, str]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every busy run's environment stepped with its action: the learner's
+        ``(reward, next_obs, terminated, truncated, active)``; a run with a non-finite
+        reward or observation goes to ``errors`` and is inactive."""
+        K = self.capacity
+        reward, next_obs = np.zeros(K), np.zeros((K, self.learner.obs_dim))
+        terminated, truncated = np.zeros(K, dtype=bool), np.zeros(K, dtype=bool)
         active = np.zeros(K, dtype=bool)
         for k in busy:
             if k in errors:
@@ -187,35 +215,27 @@ class OnlineTrainer:
             reward[k], next_obs[k], terminated[k], truncated[k] = r, obs, term, trunc
             active[k] = True
             s.ret += r
-        stats, next_actions = learner.step(reward, next_obs, terminated, truncated, active)
-        adv_ok = torch.isfinite(stats.adv).numpy()
-        for k in busy:
-            if k in errors:
-                reports[k] = Progress([], error=errors[k])
-                continue
-            s = self._slot(k)
-            if not adv_ok[k]:
-                msg = f"non-finite loss (advantage) at episode {s.episodes}, step {s.length}"
-                reports[k] = Progress([], error=msg)
-                continue
-            s.steps.append(stats.member(k))
-            s.action = next_actions[k]
-            done = bool(terminated[k] or truncated[k])
-            cut = s.cfg.steps is not None and s.total_steps + s.length >= s.cfg.steps
-            if not (done or cut):
-                continue
-            s.total_steps += s.length
-            s.episodes += 1
-            diag = episode_diagnostics(StepStats.stack(s.steps), s.cfg.learner)
-            ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, **diag)
-            reports[k] = Progress(
-                [ep],
-                checkpoint_due=s.episodes % s.cfg.checkpoint_every == 0,
-                bar_advance=1 if s.cfg.episodes is not None else s.length,
-                total_steps=s.total_steps,
-            )
-            s.action, s.steps, s.ret, s.length = None, [], 0.0, 0
-        return reports
+        return reward, next_obs, terminated, truncated, active
+
+    @staticmethod
+    def _end_episode(s: _Slot, done: bool) -> Progress | None:
+        """The report of run ``s``'s episode if it ended (or its step budget is spent),
+        with the run's episode state reset; else None."""
+        cut = s.cfg.steps is not None and s.total_steps + s.length >= s.cfg.steps
+        if not (done or cut):
+            return None
+        s.total_steps += s.length
+        s.episodes += 1
+        diag = episode_diagnostics(StepStats.stack(s.steps), s.cfg.learner)
+        ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, **diag)
+        report = Progress(
+            [ep],
+            checkpoint_due=s.episodes % s.cfg.checkpoint_every == 0,
+            bar_advance=1 if s.cfg.episodes is not None else s.length,
+            total_steps=s.total_steps,
+        )
+        s.action, s.steps, s.ret, s.length = None, [], 0.0, 0
+        return report
 
     # -- reading a run ---------------------------------------------------------------
     def finished(self, slot: int) -> bool:
