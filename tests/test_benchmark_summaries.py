@@ -417,3 +417,26 @@ def test_testbed_summary_from_result_files(tmp_path: Path) -> None:
     assert row["p_pporpe_better_score"]["value"] == 0.0  # the test bed ahead in every pair
     assert row["bands"]["apart"] == list(range(1, 61))
     assert testbed.side_by_side(records, "pendulum", "paper") is None
+
+
+def test_testbed_path_rows_compare_each_config_with_the_baseline_of_its_engine() -> None:
+    """A config run by the fused engine is held to testbed+fused, testbed+fused to the
+    torch engine's testbed (the engine check), a torch config to testbed."""
+    testbed, _ = _testbed_modules()
+    assert testbed.settings_for("testbed")["engine"] == "torch"
+    assert testbed.settings_for("testbed+lr+fused")["engine"] == "fused"
+    assert testbed.baseline_of("testbed+lr+fused") == "testbed+fused"
+    assert testbed.baseline_of("testbed+fused") == testbed.baseline_of("testbed+lr") == "testbed"
+    score = {"testbed": 0.0, "testbed+lr": 1.0, "testbed+fused": 5.0, "testbed+lr+fused": 2.0}
+    records = [
+        {"implementation": "pporpe", "task": "swingup", "config": c, "seed": seed,
+         "first50_mean": 0.0, "score": s + 0.1 * seed}
+        for c, s in score.items() for seed in range(3)
+    ]  # fmt: skip
+    rows = {r["config"]: r for r in testbed.path_rows(records, "swingup")}
+    assert "p_better_than_testbed" not in rows["testbed"]
+    assert rows["testbed+lr"]["p_better_than_testbed"]["value"] == 1.0  # above testbed
+    assert rows["testbed+fused"]["p_better_than_testbed"]["value"] == 1.0  # above testbed
+    # below testbed+fused, though above the torch engine's testbed
+    assert rows["testbed+lr+fused"]["baseline"] == "testbed+fused"
+    assert rows["testbed+lr+fused"]["p_better_than_testbed"]["value"] == 0.0
