@@ -17,6 +17,7 @@ from pporpe.experiments.stats import (
     probability_of_improvement,
     probability_of_improvement_ci,
 )
+from pporpe.runs.kinds import SurrogateDiagnostics
 from pporpe.runs.logger import EpisodeRecord, records_to_csv
 
 # Four seeds per method: scores (median test return), the return of every one of the
@@ -111,11 +112,13 @@ def write_fixture(root: Path) -> None:
                     total_steps=10 * (e + 1),
                     ret=EARLY[method][seed] if e < 50 else 1000.0,  # later episodes differ
                     length=10 if e < 50 else 40,
-                    reg_amount=REG[method][seed],
-                    past_threshold=PAST[method][e >= 50],
-                    trace_decay=0.5,
-                    ratio_dev=RATIO_DEV[method][e >= 50],
                     wall_time=float(e),
+                    diagnostics=SurrogateDiagnostics(
+                        reg_amount=REG[method][seed],
+                        past_threshold=PAST[method][e >= 50],
+                        ratio_dev=RATIO_DEV[method][e >= 50],
+                        trace_decay=0.5,
+                    ),
                 )
                 for e in range(60)
             ]

@@ -50,8 +50,10 @@ def test_run_folder_contents(tmp_path: Path) -> None:
     assert records == result.records
     steps = [r.total_steps for r in records]
     assert steps == list(np.cumsum([r.length for r in records]))
-    assert all(0.0 <= r.past_threshold <= 1.0 and 0.0 < r.trace_decay <= 1.0 for r in records)
-    assert all(r.reg_amount >= 0.0 for r in records)
+    diags = [r.diagnostics for r in records]
+    assert all(d is not None and d.trace_decay is not None for d in diags)  # all four
+    assert all(0.0 <= d.past_threshold <= 1.0 and 0.0 < d.trace_decay <= 1.0 for d in diags)
+    assert all(d.reg_amount >= 0.0 and d.ratio_dev >= 0.0 for d in diags)
     ev = json.loads((tmp_path / "evaluation.json").read_text())
     assert ev["episodes"] == 2 and ev["median"] == pytest.approx(np.median(ev["returns"]))
     assert list((tmp_path / "tensorboard").iterdir())  # event file written

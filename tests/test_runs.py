@@ -23,6 +23,7 @@ from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.runs import (
     Episode,
     Progress,
+    SurrogateDiagnostics,
     get_kind,
     kind_of,
     load_policy,
@@ -42,7 +43,7 @@ BEHAVIOUR = json.loads((FIXTURES / "behaviour_v0_1.json").read_text())
 
 
 def records_without_time(records: list[Any]) -> list[dict[str, Any]]:
-    return [{k: v for k, v in r.__dict__.items() if k != "wall_time"} for r in records]
+    return [{k: v for k, v in r.row().items() if k != "wall_time"} for r in records]
 
 
 # The fixture was made on another CPU. PyTorch and MKL pick their vectorised kernels by the
@@ -74,6 +75,9 @@ def assert_same_records(
     ]
     assert set(got[0]) == set(expected[0])
     for field in sorted(set(expected[0]) - set(EXACT_FIELDS)):
+        if None in (want := [r[field] for r in expected]):  # a value the learner lacks
+            assert [r[field] for r in got] == want, field
+            continue
         np.testing.assert_allclose(
             [r[field] for r in got],
             [r[field] for r in expected],
@@ -125,7 +129,9 @@ def test_same_numbers_as_before_the_reshape(name: str, tmp_path: Path) -> None:
     expected = BEHAVIOUR[name]
     cfg = fixture_config(name)
     result = train(cfg, tmp_path / name, progress=False)
-    assert_same_records(result.records, expected["records"], learned_rtol=MACHINE_RTOL)
+    # pporpe 0.1.0 logged a batch run's trace decay as 1.0; batch PPO has no traces: None
+    records = [{**r, "trace_decay": None} for r in expected["records"]]
+    assert_same_records(result.records, records, learned_rtol=MACHINE_RTOL)
     assert result.evaluation is not None
     assert result.evaluation.returns == expected["eval_returns"]
     state = torch.load(tmp_path / name / "checkpoint.pt", weights_only=False)
@@ -233,7 +239,8 @@ class CountTrainer:
         for slot, r in self.runs.items():
             r["done"] += 1
             length = r["cfg"].length
-            ep = Episode(r["done"] * length, r["done"] + r["noise"], length, 0.0, 0.0, 1.0, 0.0)
+            diag = SurrogateDiagnostics(0.0, 0.0, 0.0, 1.0)
+            ep = Episode(r["done"] * length, r["done"] + r["noise"], length, diag)
             out[slot] = Progress([ep], r["done"] % r["cfg"].checkpoint_every == 0, 1)
         return out
 

@@ -16,7 +16,14 @@ import torch
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy
 from ..policy import Policy
 from ..runs.folder import load_checkpoint, read_config
-from ..runs.kinds import Episode, NonFiniteError, Progress, Trainer, register_kind
+from ..runs.kinds import (
+    Episode,
+    NonFiniteError,
+    Progress,
+    SurrogateDiagnostics,
+    Trainer,
+    register_kind,
+)
 from ..runs.loop import RunResult, train
 from .config import BatchConfig, zoo_config
 from .learner import BatchLearner, UpdateStats
@@ -91,8 +98,7 @@ class BatchTrainer:
         """Collect one rollout and learn from it.
 
         Episodes that end during rollout k get the diagnostics of update k, the update
-        that learns from them. ``trace_decay`` is 1.0: batch PPO has no eligibility
-        traces (1.0 = no decay), and a number (not NaN) keeps records comparable.
+        that learns from them, without a trace decay: batch PPO has no eligibility traces.
         """
         learner = self._learner(0)
         try:
@@ -103,22 +109,13 @@ class BatchTrainer:
         except NonFiniteError as exc:
             return {0: Progress([], error=str(exc))}
         self.last_stats = stats
-        reg, past, dev = (
-            float(stats.reg_amount),
-            float(stats.past_threshold),
-            float(stats.ratio_dev),
+        diagnostics = SurrogateDiagnostics(
+            reg_amount=float(stats.reg_amount),
+            past_threshold=float(stats.past_threshold),
+            ratio_dev=float(stats.ratio_dev),
         )
         episodes = [
-            Episode(
-                total_steps=ep.total_steps,
-                ret=ep.ret,
-                length=ep.length,
-                reg_amount=reg,
-                past_threshold=past,
-                trace_decay=1.0,
-                ratio_dev=dev,
-            )
-            for ep in finished
+            Episode(ep.total_steps, ep.ret, ep.length, diagnostics=diagnostics) for ep in finished
         ]
         return {
             0: Progress(

@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
-from .results import Cell, tasks_of
+from .results import Cell, record_value, tasks_of
 from .stats import mean_ci
 
 __all__ = ["band", "curve_figure", "moving_average", "summary_figure"]
@@ -48,7 +48,7 @@ def _draw_curves(ax: Axes, cells: list[Cell], field: str, smooth: int) -> None:
     """One task's panel: per method, the mean of ``field`` over seeds and its 95% band."""
     for c in cells:
         curves = [
-            moving_average([getattr(r, field) for r in recs], smooth)
+            moving_average([record_value(r, field) for r in recs], smooth)
             for recs in c.curves.values()
             if recs
         ]
@@ -63,8 +63,9 @@ def _draw_curves(ax: Axes, cells: list[Cell], field: str, smooth: int) -> None:
 
 
 def curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth: int) -> Figure:
-    """Per task, the mean over seeds of the per-episode ``field`` of every method, with
-    95% bands, smoothed by a moving average over ``smooth`` episodes."""
+    """Per task, the mean over seeds of the per-episode ``field`` (an ``episodes.csv``
+    column, :func:`~pporpe.experiments.results.record_value`) of every method, with 95%
+    bands, smoothed by a moving average over ``smooth`` episodes."""
     envs = tasks_of(cells)
     fig = Figure(figsize=(4.2 * len(envs), 3.6))
     axes = fig.subplots(1, len(envs), squeeze=False)

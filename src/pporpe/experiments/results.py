@@ -4,25 +4,32 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from ..runs.kinds import SurrogateDiagnostics
 from ..runs.logger import EpisodeRecord, read_records
 
 __all__ = [
+    "DIAGNOSTICS",
     "EARLY_EPISODES",
     "Cell",
+    "diagnostic",
     "early_return",
     "load_results",
     "mean_regularization",
+    "record_value",
     "tasks_of",
     "update_mean",
 ]
 
 EARLY_EPISODES = 50
 """Training episodes of the early-learning comparison (the paper's pendulum claim)."""
+
+DIAGNOSTICS: tuple[str, ...] = tuple(f.name for f in fields(SurrogateDiagnostics))
+"""The names of a record's surrogate diagnostics (:func:`diagnostic`)."""
 
 
 @dataclass
@@ -72,17 +79,34 @@ def early_return(records: list[EpisodeRecord], episodes: int = EARLY_EPISODES) -
     return float(np.mean(rets)) if rets else math.nan
 
 
+def diagnostic(record: EpisodeRecord, name: str) -> float:
+    """A record's surrogate diagnostic ``name`` (a field of
+    :class:`~pporpe.runs.kinds.SurrogateDiagnostics`); NaN where the record has none (a
+    batch run's ``trace_decay``, a learner that reports no diagnostics)."""
+    if name not in DIAGNOSTICS:
+        raise ValueError(f"name must be one of {list(DIAGNOSTICS)}; got {name!r}")
+    value = None if record.diagnostics is None else getattr(record.diagnostics, name)
+    return math.nan if value is None else float(value)
+
+
+def record_value(record: EpisodeRecord, name: str) -> float:
+    """A record's number by its ``episodes.csv`` column: one of its own (``ret``,
+    ``length``, ...) or of its diagnostics (:func:`diagnostic`: NaN where it has none)."""
+    return diagnostic(record, name) if name in DIAGNOSTICS else float(getattr(record, name))
+
+
 def mean_regularization(records: list[EpisodeRecord]) -> float:
     """Mean over a run's training episodes of sigma*(rho - rho_dagger) (NaN without any)."""
-    vals = [r.reg_amount for r in records if math.isfinite(r.reg_amount)]
+    vals = [v for r in records if math.isfinite(v := diagnostic(r, "reg_amount"))]
     return float(np.mean(vals)) if vals else math.nan
 
 
 def update_mean(records: list[EpisodeRecord], field: str) -> float:
-    """Mean over a run's updates of a per-episode mean ``field`` (``past_threshold``,
-    ``ratio_dev``, ``trace_decay``): episodes weighted by their length, since an online run
-    makes one update per step (NaN without any finite value)."""
-    pairs = [(getattr(r, field), r.length) for r in records]
+    """Mean over a run's updates of a per-episode mean diagnostic ``field``
+    (``past_threshold``, ``ratio_dev``, ``trace_decay``): episodes weighted by their length,
+    since an online run makes one update per step (NaN without any finite value: a batch
+    run's ``trace_decay``)."""
+    pairs = [(diagnostic(r, field), r.length) for r in records]
     pairs = [(v, n) for v, n in pairs if math.isfinite(v) and n > 0]
     if not pairs:
         return math.nan

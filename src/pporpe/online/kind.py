@@ -20,7 +20,7 @@ import torch
 from ..config import config_from_dict
 from ..envs import ReplayableEnv, env_spec_summary, make_env
 from ..policy import Policy
-from ..runs.kinds import Episode, Progress, register_kind
+from ..runs.kinds import Episode, Progress, SurrogateDiagnostics, register_kind
 from ..runs.migrate import check_online_resumable
 from ..surrogates import regularization_amount
 from .config import OnlineConfig, TrainConfig
@@ -31,17 +31,18 @@ from .stats import StepStats
 __all__ = ["ONLINE", "OnlineKind", "OnlineTrainer", "episode_diagnostics"]
 
 
-def episode_diagnostics(stats: StepStats, learner: OnlineConfig) -> dict[str, float]:
-    """Per-episode means of the regularisation diagnostics from :meth:`StepStats.stack`."""
+def episode_diagnostics(stats: StepStats, learner: OnlineConfig) -> SurrogateDiagnostics:
+    """Per-episode means of the regularisation diagnostics and the adaptive trace decay of
+    an episode's updates (its step statistics stacked by :meth:`StepStats.stack`)."""
     reg = regularization_amount(
         learner.method, stats.ratio, stats.adv, learner.eps, learner.beta, learner.eta
     )
-    return {
-        "reg_amount": float(reg.amount.mean()),
-        "past_threshold": float(reg.fraction_past_threshold),
-        "trace_decay": float(stats.trace_decay.mean()),
-        "ratio_dev": float((stats.ratio - 1.0).abs().mean()),
-    }
+    return SurrogateDiagnostics(
+        reg_amount=float(reg.amount.mean()),
+        past_threshold=float(reg.fraction_past_threshold),
+        ratio_dev=float((stats.ratio - 1.0).abs().mean()),
+        trace_decay=float(stats.trace_decay.mean()),
+    )
 
 
 def _spaces(env_name: str) -> dict[str, Any]:
@@ -227,7 +228,7 @@ class OnlineTrainer:
         s.total_steps += s.length
         s.episodes += 1
         diag = episode_diagnostics(StepStats.stack(s.steps), s.cfg.learner)
-        ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, **diag)
+        ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, diagnostics=diag)
         report = Progress(
             [ep],
             checkpoint_due=s.episodes % s.cfg.checkpoint_every == 0,

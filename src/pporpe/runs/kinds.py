@@ -28,6 +28,7 @@ __all__ = [
     "LearnerKind",
     "NonFiniteError",
     "Progress",
+    "SurrogateDiagnostics",
     "Trainer",
     "get_kind",
     "kind_of",
@@ -41,6 +42,23 @@ class NonFiniteError(RuntimeError):
 
 
 @dataclass(frozen=True)
+class SurrogateDiagnostics:
+    """How a surrogate objective acted on the updates that learned from one episode:
+    what a learner kind of the PPO family reports for each episode, besides the numbers
+    every learner has (:class:`Episode`). Logged as four columns of ``episodes.csv``."""
+
+    reg_amount: float
+    """Mean sigma*(rho - rho_dagger) of the updates that learned from the episode."""
+    past_threshold: float
+    """Fraction of those updates whose ratio was past the surrogate's threshold."""
+    ratio_dev: float
+    """Mean |rho - 1| of those updates: how much one update changed the policy."""
+    trace_decay: float | None = None
+    """Mean adaptive trace decay over the episode; None for a learner without eligibility
+    traces (batch PPO)."""
+
+
+@dataclass(frozen=True)
 class Episode:
     """A training episode that ended, as a trainer reports it (the loop adds its index
     and wall time to make an :class:`~pporpe.runs.logger.EpisodeRecord`)."""
@@ -51,14 +69,9 @@ class Episode:
     """Undiscounted return (unscaled rewards)."""
     length: int
     """Steps in the episode."""
-    reg_amount: float
-    """Mean sigma*(rho - rho_dagger) of the updates that learned from it."""
-    past_threshold: float
-    """Fraction of those updates whose ratio was past the surrogate's threshold."""
-    trace_decay: float
-    """Mean adaptive trace decay (1.0 for learners without traces)."""
-    ratio_dev: float
-    """Mean |rho - 1| of those updates."""
+    diagnostics: SurrogateDiagnostics | None = None
+    """The learner's diagnostics of the updates that learned from the episode (None for a
+    learner that reports none)."""
 
 
 @dataclass(frozen=True)

@@ -9,18 +9,42 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from ..io import atomic_write_text
+from .kinds import SurrogateDiagnostics
 
-__all__ = ["EpisodeRecord", "RunLogger", "read_records"]
+__all__ = ["COLUMNS", "EpisodeRecord", "RunLogger", "read_records"]
+
+COLUMNS: tuple[str, ...] = (
+    "episode",
+    "total_steps",
+    "ret",
+    "length",
+    "reg_amount",
+    "past_threshold",
+    "trace_decay",
+    "ratio_dev",
+    "wall_time",
+)
+"""The columns of ``episodes.csv``, in order: an :class:`EpisodeRecord`'s own numbers and
+the four of its :class:`~pporpe.runs.kinds.SurrogateDiagnostics` (empty cells where the
+record has none)."""
+
+_INT_COLUMNS = frozenset({"episode", "total_steps", "length"})
+_DIAGNOSTIC_COLUMNS = ("reg_amount", "past_threshold", "ratio_dev", "trace_decay")
 
 
 @dataclass(frozen=True)
 class EpisodeRecord:
-    """One training episode, as logged."""
+    """One training episode, as logged: one row of ``episodes.csv`` (:data:`COLUMNS`).
+
+    Holds what every learner has; what is particular to a learner kind travels in
+    :attr:`diagnostics`.
+    """
 
     episode: int
     """Episode index, from 0."""
@@ -30,43 +54,83 @@ class EpisodeRecord:
     """Undiscounted return of the episode (unscaled rewards)."""
     length: int
     """Steps in the episode."""
-    reg_amount: float
-    """Mean over the episode's updates of sigma*(rho - rho_dagger)."""
-    past_threshold: float
-    """Fraction of the episode's updates whose ratio was past the threshold."""
-    trace_decay: float
-    """Mean adaptive trace decay over the episode."""
-    ratio_dev: float
-    """Mean |rho - 1| over the episode: how much one update changed the policy."""
     wall_time: float
     """Seconds since the start of training (over all resumed segments)."""
+    diagnostics: SurrogateDiagnostics | None = None
+    """The learner's surrogate diagnostics of the episode's updates (None for a learner
+    that reports none)."""
 
+    def row(self) -> dict[str, Any]:
+        """The record as one flat row keyed by :data:`COLUMNS`, in their order, None where
+        it has no value (a batch run's ``trace_decay``). The form a checkpoint stores."""
+        d = self.diagnostics
+        diag = dict.fromkeys(_DIAGNOSTIC_COLUMNS) if d is None else asdict(d)
+        return {name: diag[name] if name in diag else getattr(self, name) for name in COLUMNS}
 
-FIELDS = [f.name for f in fields(EpisodeRecord)]
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> EpisodeRecord:
+        """The record of a flat row keyed by :data:`COLUMNS` (:meth:`row`, or a record of a
+        checkpoint, which has always held this form). No diagnostics when all four of them
+        are None; ``trace_decay`` None when it alone is (``ValueError`` when another one
+        alone is missing; ``KeyError`` for a missing column)."""
+        reg, past, dev, trace = (row[name] for name in _DIAGNOSTIC_COLUMNS)
+        diagnostics = None
+        if (reg, past, dev) != (None, None, None):
+            if None in (reg, past, dev):
+                raise ValueError("reg_amount, past_threshold and ratio_dev go together")
+            diagnostics = SurrogateDiagnostics(
+                reg_amount=float(reg),
+                past_threshold=float(past),
+                ratio_dev=float(dev),
+                trace_decay=None if trace is None else float(trace),
+            )
+        elif trace is not None:
+            raise ValueError("a trace_decay without reg_amount, past_threshold, ratio_dev")
+        return cls(
+            episode=int(row["episode"]),
+            total_steps=int(row["total_steps"]),
+            ret=float(row["ret"]),
+            length=int(row["length"]),
+            wall_time=float(row["wall_time"]),
+            diagnostics=diagnostics,
+        )
 
 
 def records_to_csv(records: list[EpisodeRecord]) -> str:
-    """The CSV text of a list of records (header row first)."""
+    """The CSV text of a list of records (header row first; a value the record lacks is
+    an empty cell)."""
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=FIELDS, lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
     for rec in records:
-        writer.writerow(asdict(rec))
+        writer.writerow(rec.row())
     return buf.getvalue()
+
+
+def _cell(name: str, text: str | None) -> int | float | None:
+    """One CSV cell's value: None for an empty diagnostic cell."""
+    if text is None:
+        raise ValueError(f"the row has no {name} cell")
+    if text == "" and name in _DIAGNOSTIC_COLUMNS:
+        return None
+    return int(text) if name in _INT_COLUMNS else float(text)
 
 
 def read_records(path: str | Path) -> list[EpisodeRecord]:
     """Read a per-episode CSV written by :class:`RunLogger` (``ValueError`` naming the file
-    if it is missing a column or holds a value that is not a number)."""
+    if it is missing a column or holds a value that is not a number).
+
+    An empty diagnostic cell reads as None: a batch run's ``trace_decay`` (batch PPO has
+    no eligibility traces). Batch run folders written while batch runs filled that cell
+    with 1.0 read 1.0, as written (see :mod:`pporpe.runs.migrate`).
+    """
     try:
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh))
-        out = []
-        for row in rows:
-            kw: dict[str, Any] = {}
-            for f in fields(EpisodeRecord):
-                kw[f.name] = int(row[f.name]) if f.type in ("int", int) else float(row[f.name])
-            out.append(EpisodeRecord(**kw))
+        out = [
+            EpisodeRecord.from_row({name: _cell(name, row[name]) for name in COLUMNS})
+            for row in rows
+        ]
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise ValueError(
             f"{path} cannot be read as an episodes.csv ({type(exc).__name__}: {exc}); "
@@ -91,8 +155,10 @@ class RunLogger:
         """Log one episode's scalars to TensorBoard (x axis: total environment steps)."""
         if self._tb is None:
             return
+        row = rec.row()
         for name in ("ret", "length", "reg_amount", "past_threshold", "trace_decay", "ratio_dev"):
-            self._tb.add_scalar(f"train/{name}", getattr(rec, name), rec.total_steps)
+            if row[name] is not None:  # a value the record lacks is not plotted
+                self._tb.add_scalar(f"train/{name}", row[name], rec.total_steps)
 
     def scalars(self, prefix: str, values: dict[str, float], step: int) -> None:
         """Log other scalars (e.g. a batch update's statistics) as ``prefix/name``."""

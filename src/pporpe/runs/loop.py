@@ -116,7 +116,7 @@ class _Run:
 
     def resume(self, state: dict[str, Any] | None, trainer: Trainer, slot: int) -> None:
         if state is not None:
-            self.records = [EpisodeRecord(**r) for r in state["records"]]
+            self.records = [EpisodeRecord.from_row(r) for r in state["records"]]
             self.wall_offset = float(state["wall_time"])
         self.resumed_from = trainer.counters(slot)["chunks"]
         self.t_start = time.perf_counter()
@@ -139,7 +139,14 @@ class _Run:
         now = self.train_time()
         new = []
         for ep in report.episodes:
-            rec = EpisodeRecord(episode=len(self.records), **ep.__dict__, wall_time=now)
+            rec = EpisodeRecord(
+                episode=len(self.records),
+                total_steps=ep.total_steps,
+                ret=ep.ret,
+                length=ep.length,
+                wall_time=now,
+                diagnostics=ep.diagnostics,
+            )
             self.records.append(rec)
             self.logger.episode(rec)
             new.append(rec)
@@ -161,7 +168,7 @@ class _Run:
                 "the last good checkpoint is kept"
             )
         state = trainer.state(slot)
-        state["records"] = [r.__dict__ for r in self.records]
+        state["records"] = [r.row() for r in self.records]  # flat, as always
         state["wall_time"] = self.train_time()
         return state
 

@@ -12,6 +12,11 @@ Old run folders stay readable and resumable as the runs they were. What changed 
   still loads, the run cannot be continued (:func:`check_online_resumable`).
 
 Each upgrade has a fixture test (tests/fixtures; tests/test_runs.py, test_fidelity_choices.py).
+
+Not upgraded, on purpose: batch runs once logged a ``trace_decay`` of 1.0 (batch PPO has no
+eligibility traces) where they now leave the cell empty (None). Such folders and their
+checkpoints read 1.0, as written (:func:`pporpe.runs.logger.read_records`); no number of
+the report reads the trace decay.
 """
 
 from __future__ import annotations
