@@ -20,12 +20,13 @@ from pporpe.experiments.grid import load_spec, parse_spec
 from pporpe.experiments.progress import RECENT_EPISODES, GridProgress, RunProgress, run_progress
 from pporpe.experiments.report import mean_ci, write_report
 from pporpe.experiments.reproduce import reproduce
-from pporpe.online import AUTHOR_CHOICES, DEFAULT_CHOICES
+from pporpe.online import AUTHOR_CHOICES, DEFAULT_CHOICES, TESTBED, OnlineConfig
 from pporpe.runs.folder import config_json, open_run_dir
 from pporpe.runs.kinds import kind_of
 from pporpe.runs.logger import read_records
 
 ROOT = Path(__file__).resolve().parents[1]
+PENDULUMS = ("pendulum", "swingup")
 
 TINY_SPEC = """
 name = "tiny"
@@ -84,6 +85,14 @@ def test_repository_specs_parse() -> None:
     for run in quick.runs:
         learner = run.config.learner
         assert {k: getattr(learner, k) for k in DEFAULT_CHOICES} == dict(DEFAULT_CHOICES)
+    # The paper's pendulum grid with the author's test bed settings: TESTBED for every
+    # method, the paper's surrogate parameters, the paper's protocol.
+    testbed = load_spec(ROOT / "experiments" / "paper-testbed.toml")
+    assert [r.key for r in testbed.runs] == [r.key for r in paper.runs if r.env in PENDULUMS]
+    for a, b in zip([r for r in paper.runs if r.env in PENDULUMS], testbed.runs, strict=True):
+        want = OnlineConfig(**{**TESTBED, "method": a.config.learner.method, "beta": 0.5,
+                               "eta": 0.3})  # fmt: skip
+        assert b.config == replace(a.config, learner=want)
 
 
 def test_the_committed_reproduction_is_the_paper_specs_runs(tmp_path: Path) -> None:
