@@ -383,3 +383,21 @@ def test_same_numbers_whether_the_kernels_were_compiled_or_loaded(tmp_path: Path
     with contextlib.redirect_stdout(io.StringIO()) as out:
         exec(_RUN_IN_A_FRESH_PROCESS, namespace)
     assert runs[0] == runs[1] == out.getvalue().split()[-1]
+
+
+def test_a_failed_compile_subprocess_warns_and_the_kernels_still_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where the subprocess cannot run (here: an interpreter that exits 1), the kernels
+    are compiled (or loaded) in this process, with a warning saying what that costs."""
+    from pporpe.online import fused_engine
+
+    monkeypatch.setattr(fused_engine._Loaded, "done", False)
+    monkeypatch.setattr(fused_engine, "_in_cache", lambda: False)
+    monkeypatch.setattr(fused_engine.sys, "executable", "/bin/false")
+    with pytest.warns(RuntimeWarning, match="compiling the fused kernels in a subprocess"):
+        fused_engine.warm_up()
+    assert fused_engine._Loaded.done
+    p = PopulationLearner(OBS, LOW, HIGH, [cfg()], [0], engine="fused")
+    p.begin_episode([0], np.zeros((1, OBS)))
+    assert np.all(np.isfinite(p.value(np.zeros((1, OBS)))))

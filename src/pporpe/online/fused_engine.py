@@ -3,8 +3,10 @@ per-member constants as matrices, and the calls of the kernels of :mod:`.fused`.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -89,12 +91,27 @@ def warm_up() -> None:
     _Loaded.done = True  # the one-member population below must not warm up again
     try:
         if not _in_cache():
-            code = "from pporpe.online.fused_engine import compile_kernels; compile_kernels()"
-            subprocess.run([sys.executable, "-c", code], check=True)
+            _compile_in_subprocess()
         _run_kernels()  # loads them (compiles them where the cache cannot be written)
     except BaseException:
         _Loaded.done = False
         raise
+
+
+def _compile_in_subprocess() -> None:
+    """:func:`compile_kernels` in a fresh interpreter that finds pporpe where this one did
+    (its ``sys.path``); if that fails, a warning, and the kernels compile in this process."""
+    code = "from pporpe.online.fused_engine import compile_kernels; compile_kernels()"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        warnings.warn(
+            "compiling the fused kernels in a subprocess failed, so this process compiles "
+            "them, and its float rounding may differ from a process that loads them from "
+            f"numba's cache:\n{done.stderr[-2000:]}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def segment_ranges(lay: NetLayout) -> np.ndarray:
