@@ -52,9 +52,15 @@ SIDE_BY_SIDE = ("testbed", "paper")
 """The settings both implementations run: the test bed's own, and the paper's Table I
 values passed through the test bed's constructor (``testbed_worker.CONFIGS``)."""
 
-PAIRS = (("testbed", "testbed"), ("paper", "paper"), ("testbed+joint_head", "testbed"))
-"""(pporpe's settings, the test bed's) compared side by side: each with its own, and
-pporpe with its joint head against the test bed, what that choice alone changes."""
+PAIRS = (
+    ("testbed", "testbed"),
+    ("testbed+fused", "testbed"),
+    ("paper", "paper"),
+    ("testbed+joint_head", "testbed"),
+)
+"""(pporpe's settings, the test bed's) compared side by side: each with its own, pporpe's
+fused engine with the test bed's settings, and pporpe with its joint head against the
+test bed, what that choice alone changes."""
 
 TOWARD_TABLE_I: dict[str, dict[str, Any]] = {
     "lr": {"lr": 3e-4},
