@@ -39,7 +39,10 @@ TASKS = {
     "ant": "Ant",
 }
 METHODS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
-README_START = "<!-- results: written by python docs/generate.py from results/paper -->"
+README_START = (
+    "<!-- results: written by python docs/generate.py from results/paper and "
+    "results/paper-testbed -->"
+)
 README_END = "<!-- end of results -->"
 
 Row = list[str]
@@ -103,16 +106,27 @@ def machine_line(machine: dict[str, Any], command: str) -> str:
 # --- The paper's comparison -------------------------------------------------------------
 
 
-def paper_means(root: Path) -> dict[tuple[str, str], float]:
-    """Mean score per (task, method name) from ``results/paper/summary.csv``."""
-    with open(root / "results/paper/summary.csv", encoding="utf-8") as f:
+GRIDS: dict[str, str] = {
+    "results/paper": "Table I",
+    "results/paper-testbed": "the author's test bed",
+}
+"""The committed grids of the paper's comparison and the settings each ran with:
+``experiments/paper.toml`` (the paper's Table I as printed) and
+``experiments/paper-testbed.toml`` (``pporpe.online.TESTBED``, the pendulum tasks)."""
+
+
+def paper_means(root: Path, grid: str = "results/paper") -> dict[tuple[str, str], float]:
+    """Mean score per (task, method name) from a grid's ``summary.csv``."""
+    with open(root / grid / "summary.csv", encoding="utf-8") as f:
         return {(r["task"], r["method"]): float(r["mean_score"]) for r in csv.DictReader(f)}
 
 
-def paper_claims(root: Path) -> dict[tuple[str, str, str], tuple[str, str]]:
-    """(claim, task, rival) -> (P(PPO-RPE > rival) [CI], verdict), from REPORT.md's claims
-    table."""
-    rows = find_table((root / "results/paper/REPORT.md").read_text(), "claim", "REPORT.md")
+def paper_claims(
+    root: Path, grid: str = "results/paper"
+) -> dict[tuple[str, str, str], tuple[str, str]]:
+    """(claim, task, rival) -> (P(PPO-RPE > rival) [CI], verdict), from a grid's REPORT.md
+    claims table."""
+    rows = find_table((root / grid / "REPORT.md").read_text(), "claim", f"{grid}/REPORT.md")
     head = rows[0]
     i = {name: head.index(name) for name in ("claim", "task", "rival", "verdict")}
     p = next(k for k, name in enumerate(head) if name.startswith("P(PPO-RPE"))
@@ -125,20 +139,33 @@ def short_verdict(verdicts: list[str]) -> str:
     return short[0] if len(set(short)) == 1 else "; ".join(short)
 
 
-def readme_results(root: Path) -> list[str]:
-    """The README's headline table: per task the mean scores, P(PPO-RPE > rival) of the
-    final score and the verdicts of the paper's claims."""
-    means, claims = paper_means(root), paper_claims(root)
-    tasks = [t for t in TASKS if ("final performance", t, "PPO") in claims]
+def readme_rows(root: Path, grid: str) -> list[Row]:
+    """Per task of one grid: its settings, the mean scores, P(PPO-RPE > rival) of the
+    final score and the verdicts of the paper's claims of early learning and
+    regularisation ("-" where the paper makes no early-learning claim)."""
+    means, claims = paper_means(root, grid), paper_claims(root, grid)
     rows = []
-    for task in tasks:
+    for task in [t for t in TASKS if ("final performance", t, "PPO") in claims]:
         scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
         final = [claims[("final performance", task, rival)] for rival in ("PPO", "PPO-RB")]
+        early = [claims.get(("early learning", task, rival)) for rival in ("PPO", "PPO-RB")]
         reg = [claims[("regularisation", task, rival)] for rival in ("PPO", "PPO-RB")]
-        verdicts = [short_verdict([v for _, v in final]), short_verdict([v for _, v in reg])]
-        rows.append([TASKS[task], scores, final[0][0], final[1][0], *verdicts])
-    head = ["task", "mean score: PPO / PPO-RB / PPO-RPE", "P(PPO-RPE > PPO)",
-            "P(PPO-RPE > PPO-RB)", "final score", "stronger regularisation"]  # fmt: skip
+        verdicts = [
+            short_verdict([v for _, v in final]),
+            short_verdict([e[1] for e in early if e]) if all(early) else "-",
+            short_verdict([v for _, v in reg]),
+        ]
+        rows.append([TASKS[task], GRIDS[grid], scores, final[0][0], final[1][0], *verdicts])
+    return rows
+
+
+def readme_results(root: Path) -> list[str]:
+    """The README's headline table: every committed grid of :data:`GRIDS`, task by task."""
+    rows = [row for grid in GRIDS if (root / grid / "REPORT.md").exists()
+            for row in readme_rows(root, grid)]  # fmt: skip
+    head = ["task", "settings", "mean score: PPO / PPO-RB / PPO-RPE", "P(PPO-RPE > PPO)",
+            "P(PPO-RPE > PPO-RB)", "final score", "early learning",
+            "stronger regularisation"]  # fmt: skip
     return [README_START, *table(head, rows), README_END]
 
 
@@ -152,23 +179,37 @@ def with_readme_results(root: Path) -> str:
     return text[:start] + block + text[end + len(README_END) :]
 
 
-def reproduction_page(root: Path) -> str:
-    """The report of the committed grid, its figures linked from this page's folder."""
-    report = (root / "results/paper/REPORT.md").read_text(encoding="utf-8")
+def report_page(root: Path, grid: str, title: str, lead: str) -> str:
+    """A grid's REPORT.md as a docs page, its figures linked from the page's folder."""
+    report = (root / grid / "REPORT.md").read_text(encoding="utf-8")
     body = report.split("\n", 1)[1].lstrip("\n")  # drop the report's title
-    body = re.sub(r"\]\((fig_[\w.]+)\)", r"](../../results/paper/\1)", body)
-    lead = [
-        "# The paper's comparison, reproduced",
-        "",
-        banner("results/paper/REPORT.md"),
-        "",
+    body = re.sub(r"\]\((fig_[\w.]+)\)", rf"](../../{grid}/\1)", body)
+    head = [f"# {title}", "", banner(f"{grid}/REPORT.md"), "", lead, ""]
+    return "\n".join(head) + body.rstrip("\n") + "\n"
+
+
+def reproduction_page(root: Path) -> str:
+    """The report of the committed grid with the paper's Table I."""
+    return report_page(
+        root, "results/paper", "The paper's comparison, reproduced",
         "`experiments/paper.toml` run by `make reproduce-paper` into `results/paper/`, whose "
         "small per-run files are committed; `pporpe report results/paper` writes the report "
         "below from them (the same text as `results/paper/REPORT.md`, with the per-seed "
         "table in `results/paper/summary.csv`).",
-        "",
-    ]
-    return "\n".join(lead) + body.rstrip("\n") + "\n"
+    )  # fmt: skip
+
+
+def reproduction_testbed_page(root: Path) -> str:
+    """The report of the committed grid with the author's test bed settings."""
+    return report_page(
+        root, "results/paper-testbed", "The paper's comparison with the test bed's settings",
+        "`experiments/paper-testbed.toml` (the paper's two pendulum tasks, 10 seeds per "
+        "method, with `pporpe.online.TESTBED`, the settings of the author's public test bed, "
+        "for all three methods) run by `pporpe reproduce experiments/paper-testbed.toml --out "
+        "results/paper-testbed --report` into `results/paper-testbed/`, whose small per-run "
+        "files are committed. Beside it: [the same comparison with Table I](reproduction.md), "
+        "and [pporpe beside the test bed](../testbed.md).",
+    )  # fmt: skip
 
 
 # --- The learner ablation ---------------------------------------------------------------
@@ -450,6 +491,7 @@ def vs_sb3_page(root: Path) -> str:
 
 PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
+    "docs/results/reproduction-testbed.md": reproduction_testbed_page,
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
     "docs/results/vs-sb3.md": vs_sb3_page,

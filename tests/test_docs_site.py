@@ -20,6 +20,8 @@ SOURCES = [
     "benchmarks/results/pendulum_behaviour.json",
     "benchmarks/results/pendulum_behaviour_pendulum.json",
     "benchmarks/results/throughput.json",
+    "results/paper-testbed/REPORT.md",
+    "results/paper-testbed/summary.csv",
     "benchmarks/results/vs_sb3.json",
 ]
 
@@ -63,22 +65,29 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
 
 
 def test_the_readme_table_is_the_reports_final_score_claims() -> None:
-    """Each row of the README's table carries REPORT.md's P(PPO-RPE > PPO) and
-    P(PPO-RPE > PPO-RB) of the final score for that task, and summary.csv's means."""
+    """Each row of the README's table carries its grid's REPORT.md P(PPO-RPE > PPO) and
+    P(PPO-RPE > PPO-RB) of the final score for that task, and summary.csv's means: the
+    grid with Table I on the four tasks, then the one with the test bed's settings on the
+    two pendulum tasks."""
     gen = _generate()
-    report = (ROOT / "results/paper/REPORT.md").read_text()
-    claims = {tuple(r[:3]): r[3] for r in gen.find_table(report, "claim", "REPORT.md")[1:]}
     readme = (ROOT / "README.md").read_text()
     block = readme[readme.index(gen.README_START) : readme.index(gen.README_END)]
     (rows,) = gen.md_tables(block)
     tasks = {name: key for key, name in gen.TASKS.items()}
-    assert [r[0] for r in rows[1:]] == ["InvertedPendulum", "Swingup", "HalfCheetah", "Ant"]
-    means = gen.paper_means(ROOT)
+    expected = [("InvertedPendulum", "Table I"), ("Swingup", "Table I"),
+                ("HalfCheetah", "Table I"), ("Ant", "Table I"),
+                ("InvertedPendulum", "the author's test bed"),
+                ("Swingup", "the author's test bed")]  # fmt: skip
+    assert [(r[0], r[1]) for r in rows[1:]] == expected
+    grid_of = {label: grid for grid, label in gen.GRIDS.items()}
     for row in rows[1:]:
-        task = tasks[row[0]]
-        assert row[2] == claims[("final performance", task, "PPO")]
-        assert row[3] == claims[("final performance", task, "PPO-RB")]
-        assert row[1] == " / ".join(f"{means[(task, m)]:.0f}" for m in ("PPO", "PPO-RB", "PPO-RPE"))
+        task, grid = tasks[row[0]], grid_of[row[1]]
+        report = (ROOT / grid / "REPORT.md").read_text()
+        claims = {tuple(r[:3]): r[3] for r in gen.find_table(report, "claim", "REPORT.md")[1:]}
+        means = gen.paper_means(ROOT, grid)
+        assert row[3] == claims[("final performance", task, "PPO")]
+        assert row[4] == claims[("final performance", task, "PPO-RB")]
+        assert row[2] == " / ".join(f"{means[(task, m)]:.0f}" for m in ("PPO", "PPO-RB", "PPO-RPE"))
 
 
 def test_markdown_tables_are_read_row_by_row() -> None:
