@@ -10,6 +10,7 @@ comes from a committed result file, never from a hand-copied number:
   ``pendulum_behaviour*.json``;
 * ``docs/results/throughput.md``: ``benchmarks/results/throughput*.json``;
 * ``docs/results/vs-sb3.md``: ``benchmarks/results/vs_sb3.json``;
+* ``docs/results/engines.md``: ``benchmarks/results/engine_shadow.json``;
 * the block of ``README.md`` between the ``results`` markers: ``results/paper/REPORT.md``
   and ``summary.csv``.
 
@@ -489,12 +490,80 @@ def vs_sb3_page(root: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+SHADOW_SCALARS = {
+    "delta": "TD error delta",
+    "adv": "advantage A",
+    "ratio": "ratio rho",
+    "divergence": "trace divergence d",
+    "trace_decay": "trace decay",
+    "action": "next action",
+}
+"""The step's scalars of benchmarks/engine_shadow.py and their names in the table."""
+
+
+def shadow_rows(window: dict[str, Any]) -> list[Row]:
+    """One row per quantity of a window of benchmarks/results/engine_shadow.json."""
+
+    def q(d: dict[str, float]) -> list[str]:
+        return [f"{d[k]:.1e}" for k in ("q50", "q99", "q100")]
+
+    rows = [[name, "-", *q(window[key])] for key, name in SHADOW_SCALARS.items()]
+    for key in window:
+        if key.startswith("state."):
+            name = key.removeprefix("state.")
+            change = f"{window['change.' + name]['q50']:.1e}"
+            rows.append([f"`{name}`", change, *q(window[key])])
+    return rows
+
+
+def divergence_line(data: dict[str, Any]) -> str:
+    """The two engines' mean trace divergence per window of episodes."""
+    parts = [
+        f"episodes {w['episodes'][0]}-{w['episodes'][1] - 1}: "
+        f"{w['divergence_mean']['fused']:.3g} / {w['divergence_mean']['torch']:.3g}"
+        for w in data["windows"][1:]
+    ]
+    return "Mean trace divergence per step, fused / torch: " + "; ".join(parts) + "."
+
+
+def engines_page(root: Path) -> str:
+    data = read_json(root, "benchmarks/results/engine_shadow.json")
+    st, whole = data["settings"], data["windows"][0]
+    head = ["quantity", "size of the step's change (median)", "discrepancy: median",
+            "99%", "max"]  # fmt: skip
+    lines = [
+        "# The two engines along learning runs",
+        "",
+        banner("benchmarks/results/engine_shadow.json"),
+        "",
+        f"A population of the fused engine learns {TASKS.get(st['task'], st['task'])} with "
+        f"the `{st['config']}` settings of `benchmarks/testbed.py` ({len(st['seeds'])} "
+        f"members, {st['episodes']} episodes each); every {st['every']}th step its whole "
+        "state is copied into a population of the torch engine (compiled update: "
+        f"{'yes' if st['compile'] else 'no'}) and both take the same transition "
+        f"({whole['compared']} member-steps compared). The step's scalars: relative "
+        "difference |torch - fused| / max(|torch|, |fused|). Every state buffer, per "
+        "member: the step's change max|after - before| and the engines' discrepancy "
+        "max|change_torch - change_fused|, both in units of the buffer's size "
+        "max|after|. Float32 rounding reads about 1e-7 of the size; a rule that differs "
+        "reads as large as the change.",
+        "",
+        machine_line(data["machine"], data["command"]),
+        "",
+        *table(head, shadow_rows(whole), ["---", *["---:"] * 4]),
+        "",
+        divergence_line(data),
+    ]
+    return "\n".join(lines) + "\n"
+
+
 PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
     "docs/results/vs-sb3.md": vs_sb3_page,
+    "docs/results/engines.md": engines_page,
     "README.md": with_readme_results,
 }
 """Each generated file (relative to the repository root) and the function that writes it."""
