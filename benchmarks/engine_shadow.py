@@ -18,7 +18,8 @@ both take the same transition, and the two results are compared:
   reads about 1e-7 (float32); a different rule reads as large as the change itself.
   Rare larger ones come from discontinuities of the rules: the trace's
   ``r <- s max(s c2 r, |e|)`` with ``s = sign(e)`` jumps when rounding flips the sign of
-  an ``e`` near 0, and the momentum carries the jump.
+  an ``e`` near 0, and the momentum carries the jump: counted as the elements of ``r``
+  apart by more than 1e-3 of its size and those of them whose ``e`` has opposite signs.
 
 Usage::
 
@@ -82,6 +83,19 @@ def change_discrepancy(
     return out
 
 
+def sign_flips(
+    fused: dict[str, torch.Tensor], torch_: dict[str, torch.Tensor], tol: float = 1e-3
+) -> np.ndarray:
+    """Per member: ``[elements of trace_r whose values differ by more than tol of its
+    size, those of them whose trace_e has opposite signs in the two engines]``."""
+    ef, et = member_rows(fused["trace_e"], "trace_e"), member_rows(torch_["trace_e"], "trace_e")
+    rf, rt = member_rows(fused["trace_r"], "trace_r"), member_rows(torch_["trace_r"], "trace_r")
+    size = torch.maximum(rf.abs().amax(1), rt.abs().amax(1)).clamp_min(TINY).unsqueeze(1)
+    apart = (rt - rf).abs() / size > tol
+    flipped = apart & (torch.sign(ef) != torch.sign(et))
+    return torch.stack([apart.sum(1), flipped.sum(1)]).numpy()
+
+
 class Shadowed:
     """A fused population that learns and a torch population that shadows single steps."""
 
@@ -132,6 +146,7 @@ class Shadowed:
                 "torch": np.stack([getattr(st_t, n).double().numpy() for n in STATS]),
                 "action": np.abs(act_t - self._actions).max(1) / size,
                 "buffers": change_discrepancy(before["state"], after_f["state"], after_t["state"]),
+                "flips": sign_flips(after_f["state"], after_t["state"]),
                 "episode": self.episode.copy(),
             }
         self._ret += rew
@@ -195,6 +210,8 @@ def summarise(records: list[dict[str, Any]], windows: int, episodes: int) -> dic
             both = np.array([r["buffers"][name][:, k] for r, k in sel])
             row[f"change.{name}"] = quantiles(both[:, 0])
             row[f"state.{name}"] = quantiles(both[:, 1])
+        flips = np.array([r["flips"][:, k] for r, k in sel]).sum(0)
+        row["trace_r_apart"], row["trace_r_apart_sign_flipped"] = int(flips[0]), int(flips[1])
         rows.append(row)
     return {"windows": rows}
 

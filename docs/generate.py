@@ -526,6 +526,20 @@ def divergence_line(data: dict[str, Any]) -> str:
     return "Mean trace divergence per step, fused / torch: " + "; ".join(parts) + "."
 
 
+def flips_lines(whole: dict[str, Any]) -> list[str]:
+    """How many of the trace's large discrepancies are sign flips of ``e`` near 0."""
+    if "trace_r_apart" not in whole:
+        return []
+    return [
+        "",
+        f"Elements of the trace `r` that the two engines left apart by more than 1e-3 of "
+        f"its size: {whole['trace_r_apart']:,} in all compared steps; in "
+        f"{whole['trace_r_apart_sign_flipped']:,} of them the trace `e` has opposite signs "
+        "in the two engines (`r <- s max(s c2 r, |e|)`, `s = sign(e)`, jumps when rounding "
+        "flips the sign of an `e` near 0).",
+    ]
+
+
 def engines_page(root: Path) -> str:
     data = read_json(root, "benchmarks/results/engine_shadow.json")
     st, whole = data["settings"], data["windows"][0]
@@ -553,6 +567,7 @@ def engines_page(root: Path) -> str:
         *table(head, shadow_rows(whole), ["---", *["---:"] * 4]),
         "",
         divergence_line(data),
+        *flips_lines(whole),
     ]
     return "\n".join(lines) + "\n"
 

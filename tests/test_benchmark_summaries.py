@@ -484,3 +484,20 @@ def test_engine_shadow_agrees_to_rounding_on_its_first_steps() -> None:
     assert summary["windows"][0]["compared"] == 80
     for env in run.envs:
         env.close()
+
+
+def test_engine_shadow_sign_flips_by_hand() -> None:
+    """Member 0: one element of r apart by half its size with e of opposite signs, one
+    apart with e of one sign; member 1: apart by 1e-4 of its size only (not counted)."""
+    import torch
+
+    es = _engine_shadow()
+    e_f = torch.tensor([[1e-9, 0.5, 0.3], [0.2, 0.1, 0.4]]).view(1, 2, 1, 3)
+    r_f = torch.tensor([[1.0, 0.5, 0.3], [1.0, 0.1, 0.4]]).view(1, 2, 1, 3)
+    e_t, r_t = e_f.clone(), r_f.clone()
+    e_t[0, 0, 0, 0] = -1e-9
+    r_t[0, 0, 0, 0] = 0.5
+    r_t[0, 0, 0, 1] = 0.2
+    r_t[0, 1, 0, 1] = 0.1 + 1e-4
+    out = es.sign_flips({"trace_e": e_f, "trace_r": r_f}, {"trace_e": e_t, "trace_r": r_t})
+    np.testing.assert_array_equal(out, [[2, 0], [1, 0]])
