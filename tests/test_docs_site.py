@@ -23,6 +23,7 @@ SOURCES = [
     "results/paper-testbed/REPORT.md",
     "results/paper-testbed/summary.csv",
     "benchmarks/results/vs_sb3.json",
+    "benchmarks/results/engine_shadow.json",
 ]
 
 
