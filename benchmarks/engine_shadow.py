@@ -45,7 +45,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
-from testbed import TASKS, settings_for
+from testbed import TASKS, config_arg, positive_seeds, settings_for
 
 OUT = Path(__file__).resolve().parent / "results" / "engine_shadow.json"
 STATS = ("delta", "adv", "ratio", "divergence", "trace_decay")
@@ -107,14 +107,13 @@ class Shadowed:
         settings.pop("engine", None)
         self.envs = [make_env(TASKS[task], seed=s) for s in seeds]
         env: Any = self.envs[0]
-        cfg = OnlineConfig(**{k: v for k, v in settings.items()})
+        cfg = OnlineConfig(**settings)
         args = (env.observation_space.shape[0], env.action_space.low, env.action_space.high)
         K = len(seeds)
         self.lead = PopulationLearner(*args, [cfg] * K, seeds, engine="fused")
         self.shadow = PopulationLearner(
             *args, [cfg] * K, seeds, engine="torch", compile_update=compile_update
         )
-        self.seeds = seeds
         self.episode = np.zeros(K, dtype=int)
         self.returns: list[list[float]] = [[] for _ in seeds]
         self._ret = np.zeros(K)
@@ -234,8 +233,10 @@ def table(summary: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--task", choices=sorted(TASKS), default="swingup")
-    p.add_argument("--config", default="testbed", help="a benchmarks/testbed.py config name")
-    p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    p.add_argument(
+        "--config", type=config_arg, default="testbed", help="a benchmarks/testbed.py config name"
+    )
+    p.add_argument("--seeds", type=positive_seeds, nargs="+", default=[1, 2, 3, 4])
     p.add_argument("--episodes", type=int, default=100, help="episodes of every member")
     p.add_argument(
         "--every",

@@ -552,15 +552,15 @@ def engines_page(root: Path) -> str:
         "",
         f"A population of the fused engine learns {TASKS.get(st['task'], st['task'])} with "
         f"the `{st['config']}` settings of `benchmarks/testbed.py` ({len(st['seeds'])} "
-        f"members, {st['episodes']} episodes each); every {st['every']}th step its whole "
-        "state is copied into a population of the torch engine (compiled update: "
+        f"members, {st['episodes']} episodes each); every N-th step (N = {st['every']}) its "
+        "whole state is copied into a population of the torch engine (compiled update: "
         f"{'yes' if st['compile'] else 'no'}) and both take the same transition "
         f"({whole['compared']} member-steps compared). The step's scalars: relative "
         "difference |torch - fused| / max(|torch|, |fused|). Every state buffer, per "
         "member: the step's change max|after - before| and the engines' discrepancy "
         "max|change_torch - change_fused|, both in units of the buffer's size "
-        "max|after|. Float32 rounding reads about 1e-7 of the size; a rule that differs "
-        "reads as large as the change.",
+        "max|after| (of either engine). Float32 rounding reads about 1e-7 of the size; "
+        "a rule that differs reads as large as the change.",
         "",
         machine_line(data["machine"], data["command"]),
         "",

@@ -501,3 +501,20 @@ def test_engine_shadow_sign_flips_by_hand() -> None:
     r_t[0, 1, 0, 1] = 0.1 + 1e-4
     out = es.sign_flips({"trace_e": e_f, "trace_r": r_f}, {"trace_e": e_t, "trace_r": r_t})
     np.testing.assert_array_equal(out, [[2, 0], [1, 0]])
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["--config", "testbed+nope"], "--config"),
+        (["--seeds", "0"], "--seeds"),
+        (["--every", "0"], "--every"),
+    ],
+)
+def test_engine_shadow_refuses_bad_input_before_any_work(
+    argv: list[str], named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    es = _engine_shadow()
+    with pytest.raises(SystemExit):
+        es.main(argv)
+    assert named in capsys.readouterr().err
