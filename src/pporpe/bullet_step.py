@@ -1,0 +1,453 @@
+"""pporpe's own step of the paper's four PyBullet tasks: the same numbers, fewer calls.
+
+pybullet_envs_gymnasium computes a step of HalfCheetah or Ant with about 40 calls into
+PyBullet (one per joint to set its torque and read its state, one per body part for its
+position, one per foot for its contacts), each through ``BulletClient.__getattr__`` (an
+``inspect`` test and a ``functools.partial`` per call), around numpy on arrays of a few
+elements: two thirds of the step's time, the physics a third. The environments here are
+pybullet_envs_gymnasium's classes with :meth:`step` computed from a handful of batched
+calls made straight to ``pybullet`` with the client's id:
+
+* one ``setJointMotorControlArray`` sets every joint's torque,
+* one ``getJointStates`` reads every joint, one ``getLinkStates`` every body part that is a
+  link (``getBasePositionAndOrientation`` for the few that are a base),
+* the torso's velocity, and one robot-floor ``getContactPoints`` for the feet.
+
+Every number is computed as the reference computes it, operation for operation, so that
+observations, rewards and flags are bit for bit the same (``tests/test_bullet_step.py``
+checks it over thousands of steps; ``benchmarks/bullet_identity.py`` over 30,000 per task):
+the part positions' mean is numpy's pairwise mean of the same array, the 2-element norm, the
+3x3 rotation and ``arctan2`` stay numpy calls, the joints-at-limit test and the electricity
+cost stay float32, the foot contacts in an observation are the previous step's, and the
+reward is Python's ``sum`` of the same five terms in the same order. ``reset`` and seeding
+are the reference's own (inherited, not rewritten): only the step is pporpe's.
+
+The classes are what :func:`pporpe.envs.make_env` builds for the Bullet tasks by default;
+``make_env(..., bullet_step="reference")`` or the environment variable
+``PPORPE_BULLET_STEP=reference`` builds pybullet_envs_gymnasium's own classes instead, to
+check a result against them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pybullet
+from pybullet_envs_gymnasium.gym_locomotion_envs import AntBulletEnv, HalfCheetahBulletEnv
+from pybullet_envs_gymnasium.gym_pendulum_envs import (
+    InvertedPendulumBulletEnv,
+    InvertedPendulumSwingupBulletEnv,
+)
+
+__all__ = [
+    "BATCHED_ENTRY_POINTS",
+    "AntBatchedEnv",
+    "HalfCheetahBatchedEnv",
+    "InvertedPendulumBatchedEnv",
+    "InvertedPendulumSwingupBatchedEnv",
+    "WalkerLayout",
+]
+
+
+@dataclass(frozen=True)
+class WalkerLayout:
+    """Where a walker's joints, parts and feet are in PyBullet, read once per reset.
+
+    A part is ``(body, link)``, ``link = -1`` for a body's base. The reference iterates
+    over ``robot.parts`` (a dict, in its insertion order, the floor last) and
+    ``robot.ordered_joints``; the layout keeps both orders. Per-joint numbers are Python
+    floats, so that the step's arithmetic on them is the reference's, operation for operation.
+    """
+
+    client: int
+    """The physics client's id, passed to every call."""
+    body: int
+    """The robot's body id (all its joints, links and feet belong to it)."""
+    joints: list[int]
+    """Joint indices in ``ordered_joints`` order (the action's order)."""
+    torque_scale: list[float]
+    """Per joint ``robot.power * joint.power_coef``, the torque of action 1."""
+    lower: list[float]
+    """Per joint its lower limit."""
+    span: list[float]
+    """Per joint ``upper - lower``."""
+    links: list[int]
+    """Link indices of the parts that are links of :attr:`body`, in parts order."""
+    bases: list[int]
+    """Body ids of the parts that are a base, in parts order."""
+    order: list[int]
+    """For each part in parts order, its row among ``links`` rows followed by ``bases`` rows."""
+    torso: int
+    """Row of the robot's body part (the torso) among those rows."""
+    feet: list[int]
+    """Link indices of the feet on :attr:`body` (``robot.feet`` order)."""
+    grounds: list[int]
+    """Body ids of the ground parts, whose contacts with the feet count."""
+    ground_ids: frozenset[tuple[int, int]]
+    """``(body, link)`` of the ground parts, as the reference's ``ground_ids``."""
+
+    @classmethod
+    def of(cls, env: Any) -> WalkerLayout:
+        """Read the layout of a walker environment that has been reset."""
+        robot = env.robot
+        joints = robot.ordered_joints
+        body = _where(joints[0])[0]
+        parts = [_where(p) for p in robot.parts.values()]
+        links = [link for b, link in parts if link >= 0 and b == body]
+        bases = [b for b, link in parts if link < 0]
+        if len(links) + len(bases) != len(parts) or any(
+            _where(j)[0] != body for j in [*joints, *robot.feet]
+        ):
+            raise ValueError("a batched step needs every joint, link and foot on one body")
+        rows = {(body, link): i for i, link in enumerate(links)}
+        rows.update({(b, -1): len(links) + i for i, b in enumerate(bases)})
+        return cls(
+            client=env.physicsClientId,
+            body=body,
+            joints=[j.jointIndex for j in joints],
+            torque_scale=[robot.power * j.power_coef for j in joints],
+            lower=[j.lowerLimit for j in joints],
+            span=[j.upperLimit - j.lowerLimit for j in joints],
+            links=links,
+            bases=bases,
+            order=[rows[part] for part in parts],
+            torso=rows[_where(robot.robot_body)],
+            feet=[_where(f)[1] for f in robot.feet],
+            grounds=sorted({b for b, _ in env.ground_ids}),
+            ground_ids=frozenset(env.ground_ids),
+        )
+
+
+def _where(part: Any) -> tuple[int, int]:
+    """``(body id, link or joint index)`` of a pybullet_envs_gymnasium part or joint."""
+    index = part.bodyPartIndex if hasattr(part, "bodyPartIndex") else part.jointIndex
+    return int(part.bodies[part.bodyIndex]), int(index)
+
+
+def numpy_mean(x: np.ndarray) -> Any:
+    """``x.mean()`` of a 1-D float array, computed as numpy computes it (numpy's
+    ``_methods._mean``: the pairwise ``add.reduce``, divided by the count as an ``intp``,
+    cast back to the array's type), without the Python around it.
+    ``tests/test_bullet_step.py`` holds it to ``x.mean()`` bit for bit."""
+    total = np.add.reduce(x)
+    return total.dtype.type(total / np.intp(x.shape[0]))
+
+
+def apply_torques(layout: WalkerLayout, action: Any) -> None:
+    """``robot.apply_action``: each joint's torque ``power * power_coef * clip(a, -1, 1)``.
+
+    ``float(np.clip(a_n, -1, 1))`` of a finite float is ``min(max(float(a_n), -1), 1)``.
+    """
+    assert np.isfinite(action).all()
+    values = np.asarray(action).tolist()
+    scales = layout.torque_scale
+    forces = [k * min(max(x, -1.0), 1.0) for k, x in zip(scales, values, strict=True)]
+    pybullet.setJointMotorControlArray(
+        layout.body, layout.joints, pybullet.TORQUE_CONTROL, forces=forces,
+        physicsClientId=layout.client,
+    )  # fmt: skip
+
+
+def joint_features(layout: WalkerLayout) -> np.ndarray:
+    """Per joint its position scaled to [-1, 1] between its limits and 0.1 x its speed,
+    interleaved, float32 (``Joint.current_relative_position`` of every joint)."""
+    states = pybullet.getJointStates(layout.body, layout.joints, physicsClientId=layout.client)
+    features = [
+        (2 * (s[0] - low) / span - 1.0, 0.1 * s[1])
+        for s, low, span in zip(states, layout.lower, layout.span, strict=True)
+    ]
+    return np.array(features, dtype=np.float32).ravel()
+
+
+def part_positions(layout: WalkerLayout) -> tuple[np.ndarray, tuple[Any, Any]]:
+    """Every part's position as a ``(parts, 3)`` array in parts order, and the torso's
+    position and orientation (a quaternion)."""
+    c = layout.client
+    states = pybullet.getLinkStates(layout.body, layout.links, physicsClientId=c)
+    poses = [s[:2] for s in states]
+    poses += [pybullet.getBasePositionAndOrientation(b, physicsClientId=c) for b in layout.bases]
+    return np.array([poses[i][0] for i in layout.order]), poses[layout.torso]
+
+
+def torso_speed(layout: WalkerLayout) -> np.ndarray:
+    """The torso's linear velocity in the world frame (``BodyPart.speed``)."""
+    c = layout.client
+    if layout.torso >= len(layout.links):
+        body = layout.bases[layout.torso - len(layout.links)]
+        return np.array(pybullet.getBaseVelocity(body, physicsClientId=c)[0])
+    link = layout.links[layout.torso]
+    return np.array(pybullet.getLinkState(layout.body, link, 1, physicsClientId=c)[6])
+
+
+def feet_on_ground(layout: WalkerLayout, feet_contact: np.ndarray) -> None:
+    """Set ``feet_contact[i]`` to 1 where foot i touches a ground part, else 0."""
+    touching = {
+        x[3]
+        for ground in layout.grounds
+        for x in pybullet.getContactPoints(layout.body, ground, physicsClientId=layout.client)
+        if (x[2], x[4]) in layout.ground_ids
+    }
+    feet_contact[:] = [1.0 if foot in touching else 0.0 for foot in layout.feet]
+
+
+def walker_state(env: Any, layout: WalkerLayout) -> np.ndarray:
+    """``WalkerBase.calc_state``: the observation, and the robot's attributes it sets."""
+    robot = env.robot
+    j = joint_features(layout)
+    robot.joint_speeds = j[1::2]
+    robot.joints_at_limit = np.count_nonzero(np.abs(j[0::2]) > 0.99)
+    parts_xyz, (torso_xyz, torso_quat) = part_positions(layout)
+    flat = parts_xyz.ravel()
+    robot.body_real_xyz = np.array(torso_xyz)
+    body_z = robot.body_real_xyz[2]
+    robot.body_xyz = (numpy_mean(flat[0::3]), numpy_mean(flat[1::3]), body_z)
+    robot.body_rpy = pybullet.getEulerFromQuaternion(torso_quat)
+    r, p, yaw = robot.body_rpy
+    dy = robot.walk_target_y - robot.body_xyz[1]
+    dx = robot.walk_target_x - robot.body_xyz[0]
+    robot.walk_target_theta = np.arctan2(dy, dx)
+    to_target = np.array([dy, dx])
+    robot.walk_target_dist = np.sqrt(to_target.dot(to_target))  # np.linalg.norm's own steps
+    angle_to_target = robot.walk_target_theta - yaw
+    cos, sin = np.cos(-yaw), np.sin(-yaw)
+    rot_speed = np.array([[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]])
+    vx, vy, vz = np.dot(rot_speed, torso_speed(layout))
+    more = np.array(
+        [body_z - robot.initial_z, np.sin(angle_to_target), np.cos(angle_to_target),
+         0.3 * vx, 0.3 * vy, 0.3 * vz, r, p],
+        dtype=np.float32,
+    )  # fmt: skip
+    state = np.concatenate([more, j, robot.feet_contact])
+    return np.minimum(np.maximum(state, -5, out=state), +5, out=state)  # np.clip's own steps
+
+
+class BatchedWalkerStep:
+    """``WalkerBaseBulletEnv.step`` from batched PyBullet calls (mixed into the task's class).
+
+    ``reset`` is the reference's; afterwards the layout of joints, parts and feet is read
+    once (:class:`WalkerLayout`), and each step uses it.
+    """
+
+    _layout: WalkerLayout | None = None
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        out = super().reset(seed=seed, options=options)  # type: ignore[misc]
+        self._layout = WalkerLayout.of(self)
+        return out
+
+    def step(self, a: Any) -> Any:
+        env: Any = self
+        layout = self._layout
+        if layout is None:
+            raise RuntimeError("call reset() before step()")
+        robot = env.robot
+        apply_torques(layout, a)
+        pybullet.stepSimulation(physicsClientId=layout.client)
+        state = walker_state(env, layout)
+        env._alive = float(robot.alive_bonus(state[0] + robot.initial_z, robot.body_rpy[1]))
+        done = env._isDone()
+        if not np.isfinite(state).all():
+            print("~INF~", state)
+            done = True
+        potential_old = env.potential
+        env.potential = robot.calc_potential()
+        progress = float(env.potential - potential_old)
+        feet_on_ground(layout, robot.feet_contact)
+        electricity = numpy_mean(np.abs(a * robot.joint_speeds))
+        electricity_cost = env.electricity_cost * float(electricity)
+        electricity_cost += env.stall_torque_cost * float(numpy_mean(np.square(a)))
+        joints_at_limit_cost = float(env.joints_at_limit_cost * robot.joints_at_limit)
+        env.rewards = [env._alive, progress, electricity_cost, joints_at_limit_cost, 0.0]
+        reward = sum(env.rewards)
+        env.reward += reward
+        return state, reward, bool(done), False, {}
+
+
+class HalfCheetahBatchedEnv(BatchedWalkerStep, HalfCheetahBulletEnv):
+    """``HalfCheetahBulletEnv-v0`` with the batched step: the same numbers, about 2x faster."""
+
+
+class AntBatchedEnv(BatchedWalkerStep, AntBulletEnv):
+    """``AntBulletEnv-v0`` with the batched step: the same numbers, about 2x faster."""
+
+
+class BatchedPendulumStep:
+    """``InvertedPendulumBulletEnv.step`` with one call to read both joints."""
+
+    _joints: tuple[int, int, int, int] | None = None
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        out = super().reset(seed=seed, options=options)  # type: ignore[misc]
+        robot: Any = self.robot  # type: ignore[attr-defined]
+        hinge, slider = _where(robot.j1), _where(robot.slider)
+        if hinge[0] != slider[0]:
+            raise ValueError("a batched step needs the hinge and the slider on one body")
+        self._joints = (self.physicsClientId, hinge[0], hinge[1], slider[1])  # type: ignore[attr-defined]
+        return out
+
+    def step(self, a: Any) -> Any:
+        env: Any = self
+        if self._joints is None:
+            raise RuntimeError("call reset() before step()")
+        client, body, hinge, slider = self._joints
+        assert np.isfinite(a).all()
+        torque = 100 * float(np.clip(a[0], -1, +1))
+        pybullet.setJointMotorControl2(
+            bodyIndex=body, jointIndex=slider, controlMode=pybullet.TORQUE_CONTROL,
+            force=torque, physicsClientId=client,
+        )  # fmt: skip
+        pybullet.stepSimulation(physicsClientId=client)
+        state = _pendulum_state(env.robot, pybullet.getJointStates(
+            body, [hinge, slider], physicsClientId=client))  # fmt: skip
+        if env.robot.swingup:
+            reward = state[2]  # np.cos(theta), as computed for the observation
+            done = False
+        else:
+            reward = 1.0
+            done = np.abs(env.robot.theta) > 0.2
+        env.rewards = [float(reward)]
+        return state.astype(np.float32), sum(env.rewards), bool(done), False, {}
+
+
+def _pendulum_state(robot: Any, joints: Any) -> np.ndarray:
+    """``InvertedPendulum.calc_state`` from the hinge's and the slider's joint states."""
+    robot.theta, theta_dot = joints[0][0], joints[0][1]
+    x, vx = joints[1][0], joints[1][1]
+    assert math.isfinite(x)
+    if not math.isfinite(vx):
+        print("vx is inf")
+        vx = 0
+    if not math.isfinite(robot.theta):
+        print("theta is inf")
+        robot.theta = 0
+    if not math.isfinite(theta_dot):
+        print("theta_dot is inf")
+        theta_dot = 0
+    return np.array([x, vx, np.cos(robot.theta), np.sin(robot.theta), theta_dot])
+
+
+class InvertedPendulumBatchedEnv(BatchedPendulumStep, InvertedPendulumBulletEnv):
+    """``InvertedPendulumBulletEnv-v0`` with the batched step: the same numbers."""
+
+
+class InvertedPendulumSwingupBatchedEnv(
+    BatchedPendulumStep, InvertedPendulumSwingupBulletEnv
+):
+    """``InvertedPendulumSwingupBulletEnv-v0`` with the batched step: the same numbers."""
+
+
+BATCHED_ENTRY_POINTS: dict[str, str] = {
+    "InvertedPendulumBulletEnv-v0": f"{__name__}:InvertedPendulumBatchedEnv",
+    "InvertedPendulumSwingupBulletEnv-v0": f"{__name__}:InvertedPendulumSwingupBatchedEnv",
+    "HalfCheetahBulletEnv-v0": f"{__name__}:HalfCheetahBatchedEnv",
+    "AntBulletEnv-v0": f"{__name__}:AntBatchedEnv",
+}
+"""The Gymnasium ids whose step pporpe computes, and the class that computes it."""
+
+
+@dataclass(frozen=True)
+class SideBySide:
+    """What :func:`side_by_side` saw: counts, and the first difference if any."""
+
+    task: str
+    """The task's alias or id."""
+    steps: int
+    """Steps taken in each environment."""
+    seed: int
+    """The seed of the first reset and of the action sequence."""
+    resets: int
+    """Resets after the first (after an end of episode, or at random times)."""
+    terminations: int
+    """Episodes that ended by ``terminated`` (a natural end of the task)."""
+    truncations: int
+    """Episodes that ended by ``truncated`` (the time limit)."""
+    first_difference: str | None
+    """The first step whose outputs differ, and what differs; None when all were equal."""
+
+    @property
+    def identical(self) -> bool:
+        """Whether every observation, reward and flag was the same bit for bit."""
+        return self.first_difference is None
+
+
+def _same_bits(a: Any, b: Any) -> bool:
+    """Whether two observations or two rewards are the same value of the same type, bit
+    for bit (so ``-0.0`` and ``0.0``, or a float32 and a float64, differ)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return bool(a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes())
+    return bool(np.asarray(a).tobytes() == np.asarray(b).tobytes())
+
+
+def _difference(t: int, out_a: Any, out_b: Any) -> str | None:
+    """What differs between two ``step`` results ``(obs, reward, terminated, truncated,
+    info)`` or two ``reset`` results ``(obs, info)`` (``t = -1`` names the first reset)."""
+    names: tuple[str, ...] = ("observation", "reward", "terminated", "truncated", "info")
+    if len(out_a) == 2:
+        names = ("observation", "info")
+    for name, a, b in zip(names, out_a, out_b, strict=True):
+        if name in ("observation", "reward"):
+            same = _same_bits(a, b)
+        else:
+            same = type(a) is type(b) and a == b
+        if not same:
+            return f"step {t}: the {name} differs ({a!r} against {b!r})"
+    return None
+
+
+def side_by_side(
+    task: str, steps: int, seed: int = 0, make: Any = None, reference: Any = None
+) -> SideBySide:
+    """Step the batched and the reference environment of ``task`` with the same actions.
+
+    The actions are held for 1-60 steps each, half of them drawn in [-1.5, 1.5] (outside
+    the bounds [-1, 1] included) and half at +-1.2 on every joint (which topples the Ant: its
+    episodes end by ``terminated``). Besides the ends of episodes, both are reset at random
+    times, with a new seed or none. Every observation, reward, ``terminated``,
+    ``truncated`` and reset observation is compared bit for bit; the first difference ends
+    the run. ``make`` and ``reference`` build the two environments (default:
+    :func:`pporpe.envs.make_env` with ``bullet_step="batched"`` and ``"reference"``).
+    """
+    from .envs import make_env
+
+    env_a = make(task) if make is not None else make_env(task, bullet_step="batched")
+    env_b = reference(task) if reference is not None else make_env(task, bullet_step="reference")
+    rng = np.random.default_rng(seed)
+    dim = int(np.prod(np.shape(env_a.action_space.sample())))
+    counts = {"resets": 0, "terminations": 0, "truncations": 0}
+    try:
+        found = _difference(-1, env_a.reset(seed=seed), env_b.reset(seed=seed))
+        action, hold = None, 0
+        for t in range(steps if found is None else 0):
+            if hold == 0:
+                action, hold = _held_action(rng, dim)
+            hold -= 1
+            out_a, out_b = env_a.step(action), env_b.step(action)
+            found = _difference(t, out_a, out_b)
+            if found is not None:
+                break
+            counts["terminations"] += int(out_a[2])
+            counts["truncations"] += int(out_a[3] and not out_a[2])
+            if out_a[2] or out_a[3] or rng.random() < 1 / 1500:
+                counts["resets"] += 1
+                new_seed = int(rng.integers(2**31)) if rng.random() < 0.5 else None
+                found = _difference(t, env_a.reset(seed=new_seed), env_b.reset(seed=new_seed))
+                if found is not None:
+                    break
+    finally:
+        env_a.close()
+        env_b.close()
+    return SideBySide(task=task, steps=steps, seed=seed, first_difference=found, **counts)
+
+
+def _held_action(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, int]:
+    """An action (float32) and how many steps to hold it."""
+    if rng.random() < 0.5:
+        action = rng.uniform(-1.5, 1.5, dim)
+    else:
+        action = rng.choice([-1.2, 1.2], dim)
+    return action.astype(np.float32), int(rng.integers(1, 61))
