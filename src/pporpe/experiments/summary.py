@@ -9,10 +9,28 @@ from typing import Any
 import numpy as np
 
 from .figures import METHOD_LABELS
-from .results import Cell, early_return, mean_regularization, tasks_of, update_mean
-from .stats import Estimate, bootstrap_ci, iqm, mean_ci, probability_of_improvement_ci
+from .results import (
+    Cell,
+    early_return,
+    mean_regularization,
+    tasks_of,
+    update_mean,
+)
+from .stats import (
+    Estimate,
+    bootstrap_ci,
+    iqm,
+    mean_ci,
+    mean_difference_ci,
+    probability_of_improvement_ci,
+)
 
-__all__ = ["Statistics", "cell_rows", "improvement_rows", "statistics"]
+__all__ = [
+    "Statistics",
+    "cell_rows",
+    "improvement_rows",
+    "statistics",
+]
 
 
 @dataclass(frozen=True)
@@ -23,7 +41,8 @@ class Statistics:
     """Per task and method: scores, early learning, regularisation, updates past the
     threshold and abs(rho - 1) (``summary.csv``)."""
     improvements: list[dict[str, Any]]
-    """Per task and rival: the probabilities of improvement of PPO-RPE."""
+    """Per task and rival: the probabilities of improvement of PPO-RPE and the differences
+    of the means."""
 
 
 def statistics(cells: list[Cell]) -> Statistics:
@@ -74,18 +93,35 @@ def cell_rows(cells: list[Cell]) -> list[dict[str, Any]]:
     return rows
 
 
-def _per_seed(cell: Cell) -> dict[str, list[float]]:
-    """The per-seed numbers compared between methods: score, first-50 return, regularisation."""
-    return {
-        "score": list(cell.scores.values()),
-        "first50": [early_return(r) for r in cell.curves.values()],
-        "reg": [mean_regularization(r) for r in cell.curves.values()],
+def _per_seed(cell: Cell) -> dict[str, dict[int, float]]:
+    """The per-seed numbers compared between methods (score, first-50 return,
+    regularisation), by seed, finite values only."""
+    numbers = {
+        "score": dict(cell.scores),
+        "first50": {s: early_return(r) for s, r in cell.curves.items()},
+        "reg": {s: mean_regularization(r) for s, r in cell.curves.items()},
     }
+    return {
+        name: {s: v for s, v in sorted(by_seed.items()) if math.isfinite(v)}
+        for name, by_seed in numbers.items()
+    }
+
+
+def _compare(row: dict[str, Any], name: str, x: dict[int, float], y: dict[int, float]) -> None:
+    """``row``'s entries for one statistic: P(x > y) (``name_value|low|high``), the
+    difference of the means (``name_diff_*``), the numbers of seeds (``name_n``) and the
+    seed sets (``name_seeds``)."""
+    a, b = list(x.values()), list(y.values())
+    _put(row, name, probability_of_improvement_ci(a, b) if a and b else None)
+    _put(row, f"{name}_diff", mean_difference_ci(a, b) if a and b else None)
+    row[f"{name}_n"] = (len(a), len(b))
+    row[f"{name}_seeds"] = (tuple(x), tuple(y))
 
 
 def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]:
     """Per task and rival method: P(``of`` > rival) of the scores, of the early returns and
-    of the regularisation amount, each with its bootstrap CI."""
+    of the regularisation amount, and the differences of their means (``of`` minus rival),
+    each with its bootstrap CI, with the seeds compared."""
     rows = []
     for env in tasks_of(cells):
         here = {c.method: c for c in cells if c.env == env}
@@ -97,8 +133,6 @@ def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]
                 continue
             row: dict[str, Any] = {"task": env, "method": of, "rival": rival}
             for name, y in _per_seed(theirs).items():
-                x, y = _finite(mine[name]), _finite(y)
-                _put(row, name, probability_of_improvement_ci(x, y) if x and y else None)
-                row[f"{name}_n"] = (len(x), len(y))
+                _compare(row, name, mine[name], y)
             rows.append(row)
     return rows
