@@ -1,5 +1,5 @@
-"""The report's verdicts (issue 39 item 3, issue 41 item 2) and the mean difference beside
-P."""
+"""The report's verdicts (issue 39 item 3, issue 41 item 2), the mean difference beside P,
+and the surrogate diagnostics by quarter of training (issue 39 item 4)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,14 @@ import pytest
 from scipy import stats
 
 from pporpe.experiments.report import load_results, write_report
+from pporpe.experiments.results import Cell, quarter_means
 from pporpe.experiments.stats import (
     mean_difference,
     mean_difference_ci,
     probability_of_improvement_ci,
 )
-from pporpe.experiments.summary import improvement_rows
+from pporpe.experiments.summary import improvement_rows, quarter_rows
+from pporpe.experiments.tables import quarter_markdown
 from pporpe.experiments.verdicts import (
     EQUIVALENCE_BOUNDS,
     MIN_SEEDS,
@@ -205,11 +207,62 @@ def test_partial_grid_with_different_seed_sets_has_no_verdict(tmp_path: Path) ->
     assert row.endswith("| supported (PPO-RPE ahead) |")
 
 
+# --- where the surrogates act --------------------------------------------------------------
+
+
+def episodes(lengths: list[int], past: list[float], dev: list[float]) -> list[EpisodeRecord]:
+    return [
+        EpisodeRecord(e, 0, 0.0, n, 0.0, SurrogateDiagnostics(0.0, p, d))
+        for e, (n, p, d) in enumerate(zip(lengths, past, dev, strict=True))
+    ]
+
+
+# Seed 0: 8 episodes, two per quarter. Weighted by length (updates):
+#   Q1 (10 * 0.1 + 30 * 0) / 40 = 0.025; Q2 (20 * 0.05 + 20 * 0.15) / 40 = 0.1;
+#   Q3 (5 * 0.2 + 15 * 0) / 20 = 0.05;  Q4 (40 * 0.01) / 40 = 0.01 (a 0-step episode has no
+#   update). abs(rho - 1) is twice the share, episode by episode.
+SEED0 = episodes([10, 30, 20, 20, 5, 15, 40, 0], [0.1, 0.0, 0.05, 0.15, 0.2, 0.0, 0.01, 0.5],
+                 [0.2, 0.0, 0.1, 0.3, 0.4, 0.0, 0.02, 1.0])  # fmt: skip
+# Seed 1: 6 episodes of 10 steps; quarters [0:1], [1:3], [3:4], [4:6]:
+#   Q1 0.3; Q2 (0.1 + 0.2) / 2 = 0.15; Q3 0.0; Q4 (0.04 + 0.06) / 2 = 0.05.
+SEED1 = episodes([10] * 6, [0.3, 0.1, 0.2, 0.0, 0.04, 0.06], [0.6, 0.2, 0.4, 0.0, 0.08, 0.12])
+
+
+def test_quarter_means_by_hand() -> None:
+    assert quarter_means(SEED0, "past_threshold") == pytest.approx((0.025, 0.1, 0.05, 0.01))
+    assert quarter_means(SEED0, "ratio_dev") == pytest.approx((0.05, 0.2, 0.1, 0.02))
+    assert quarter_means(SEED1, "past_threshold") == pytest.approx((0.3, 0.15, 0.0, 0.05))
+    # Three episodes: quarters [0:0], [0:1], [1:2], [2:3]; the first is empty.
+    q = quarter_means(SEED1[:3], "past_threshold")
+    assert math.isnan(q[0]) and q[1:] == pytest.approx((0.3, 0.1, 0.2))
+
+
+def test_quarter_table_averages_over_seeds() -> None:
+    cells = [Cell("pendulum", "rpe", {}, {0: SEED0, 1: SEED1}, []),
+             Cell("pendulum", "ppo", {}, {0: SEED1[:3]}, [1])]  # fmt: skip
+    rpe, ppo = quarter_rows(cells)
+    # Means over the two seeds: (0.025 + 0.3) / 2, (0.1 + 0.15) / 2, (0.05 + 0) / 2, ...
+    assert rpe.past == pytest.approx((0.1625, 0.125, 0.025, 0.03))
+    assert rpe.ratio_dev == pytest.approx((0.325, 0.25, 0.05, 0.06))
+    assert (rpe.method, rpe.seeds, ppo.seeds) == ("PPO-RPE", 2, 1)
+    lines = quarter_markdown([rpe, ppo])
+    assert lines[0].count("|") == 11
+    assert lines[2] == (
+        "| pendulum | PPO-RPE | 16.25 | 12.50 | 2.50 | 3.00 | 32.50 | 25.00 | 5.00 | 6.00 |"
+    )
+    # One seed of 3 episodes: no first quarter.
+    assert lines[3] == (
+        "| pendulum | PPO | n/a | 30.00 | 10.00 | 20.00 | n/a | 60.00 | 20.00 | 40.00 |"
+    )
+
+
 def test_report_has_the_new_tables(tmp_path: Path) -> None:
     write_grid(tmp_path, {"ppo": {s: float(s) for s in range(5)},
                           "rpe": {s: 10.0 + s for s in range(5)}})  # fmt: skip
     write_report(tmp_path)
     report = (tmp_path / "REPORT.md").read_text()
+    quarters = "| 1.00 | 1.00 | 1.00 | 1.00 | 2.00 | 2.00 | 2.00 | 2.00 |"
+    assert f"| pendulum | PPO-RPE {quarters}" in report and f"| pendulum | PPO {quarters}" in report
     # Regularisation 0.1 * score: mean(1.0 .. 1.4) - mean(0 .. 0.4) = 1.
     assert "| regularisation | pendulum | PPO | 1.00 [1.00, 1.00] | 1.0000 [" in report
     assert "strictly inside 0.36-0.64" in report

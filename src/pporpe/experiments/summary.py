@@ -10,9 +10,11 @@ import numpy as np
 
 from .figures import METHOD_LABELS
 from .results import (
+    QUARTERS,
     Cell,
     early_return,
     mean_regularization,
+    quarter_means,
     tasks_of,
     update_mean,
 )
@@ -26,11 +28,29 @@ from .stats import (
 )
 
 __all__ = [
+    "QuarterRow",
     "Statistics",
     "cell_rows",
     "improvement_rows",
+    "quarter_rows",
     "statistics",
 ]
+
+
+@dataclass(frozen=True)
+class QuarterRow:
+    """Where a surrogate acts, for one task and method: per quarter of training
+    (:func:`.results.quarter_means`), the share of updates past the threshold and the mean
+    abs(rho - 1), each the mean over seeds of the runs' update-weighted means."""
+
+    task: str
+    method: str
+    seeds: int
+    """Runs averaged (finished runs of the cell)."""
+    past: tuple[float, ...]
+    """Share of updates past the threshold, per quarter (a fraction; NaN without data)."""
+    ratio_dev: tuple[float, ...]
+    """Mean abs(rho - 1) of the updates, per quarter (NaN without data)."""
 
 
 @dataclass(frozen=True)
@@ -43,11 +63,14 @@ class Statistics:
     improvements: list[dict[str, Any]]
     """Per task and rival: the probabilities of improvement of PPO-RPE and the differences
     of the means."""
+    quarters: list[QuarterRow]
+    """Per task and method: the surrogate diagnostics by quarter of training."""
 
 
 def statistics(cells: list[Cell]) -> Statistics:
-    """The tables of a report: :func:`cell_rows` and :func:`improvement_rows`."""
-    return Statistics(cell_rows(cells), improvement_rows(cells))
+    """The tables of a report: :func:`cell_rows`, :func:`improvement_rows` and
+    :func:`quarter_rows`."""
+    return Statistics(cell_rows(cells), improvement_rows(cells), quarter_rows(cells))
 
 
 def _finite(values: list[float]) -> list[float]:
@@ -90,6 +113,27 @@ def cell_rows(cells: list[Cell]) -> list[dict[str, Any]]:
         _put(row, "past", _estimate([update_mean(r, "past_threshold") for r in runs]))
         _put(row, "ratio_dev", _estimate([update_mean(r, "ratio_dev") for r in runs]))
         rows.append(row)
+    return rows
+
+
+def _seed_means(per_seed: list[tuple[float, ...]], quarter: int) -> float:
+    """The mean over seeds of one quarter's values (NaN where no seed has a finite one)."""
+    vals = _finite([q[quarter] for q in per_seed])
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def quarter_rows(cells: list[Cell]) -> list[QuarterRow]:
+    """One :class:`QuarterRow` per cell: ``past_threshold`` and ``ratio_dev`` by quarter of
+    training, per run (:func:`.results.quarter_means`), then averaged over seeds."""
+    rows = []
+    for c in cells:
+        by_field = []
+        for field in ("past_threshold", "ratio_dev"):
+            per_run = [quarter_means(r, field) for r in c.curves.values()]
+            by_field.append(tuple(_seed_means(per_run, k) for k in range(QUARTERS)))
+        past, dev = by_field
+        label = METHOD_LABELS.get(c.method, c.method)
+        rows.append(QuarterRow(c.env, label, len(c.curves), past, dev))
     return rows
 
 
