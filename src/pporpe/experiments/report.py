@@ -5,14 +5,17 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``
 
 * ``REPORT.md``: what ran, the tables below, and each claim of the paper (final score,
   early learning on the pendulum tasks, strength of regularisation) against the data, as
-  a probability of improvement with its CI and a verdict (:mod:`.verdicts`); a
-  hand-written ``notes.md`` in the folder goes at its top;
+  a probability of improvement with its CI, the difference of the means with its CI, and
+  a verdict (:mod:`.verdicts`: supported, contradicted, equivalent or cannot tell; none
+  from fewer than 5 seeds or different seeds); a hand-written ``notes.md`` in the folder
+  goes at its top;
 * ``summary.md`` / ``summary.csv`` (:mod:`.tables`, from :mod:`.summary`): per task and
   method, over seeds of the per-seed median test score: the mean and the IQM with
   bootstrap 95% CIs (:mod:`.stats`; the CSV also has the Student-t interval), the mean
   return of the first 50 training episodes, the mean regularisation amount; how often the
   ratio was past the threshold and how far it was from 1 (how much the surrogates can
-  differ); then P(PPO-RPE > rival) for the first three;
+  differ), over the run and by quarter of training; then P(PPO-RPE > rival) for the
+  first three;
 * ``fig_summary``: bar summary of the scores (the paper's Fig. 3, ``sim_summary``);
 * ``fig_learning``: learning curves per task, mean over seeds, 95% bands (Fig. 4, ``sim_learn``);
 * ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, fields
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -15,11 +16,13 @@ from ..runs.logger import EpisodeRecord, read_records
 __all__ = [
     "DIAGNOSTICS",
     "EARLY_EPISODES",
+    "QUARTERS",
     "Cell",
     "diagnostic",
     "early_return",
     "load_results",
     "mean_regularization",
+    "quarter_means",
     "record_value",
     "tasks_of",
     "update_mean",
@@ -27,6 +30,9 @@ __all__ = [
 
 EARLY_EPISODES = 50
 """Training episodes of the early-learning comparison (the paper's pendulum claim)."""
+
+QUARTERS = 4
+"""Parts of training that :func:`quarter_means` splits a run's episodes into."""
 
 DIAGNOSTICS: tuple[str, ...] = tuple(f.name for f in fields(SurrogateDiagnostics))
 """The names of a record's surrogate diagnostics (:func:`diagnostic`)."""
@@ -111,3 +117,13 @@ def update_mean(records: list[EpisodeRecord], field: str) -> float:
     if not pairs:
         return math.nan
     return float(sum(v * n for v, n in pairs) / sum(n for _, n in pairs))
+
+
+def quarter_means(records: list[EpisodeRecord], field: str) -> tuple[float, ...]:
+    """:func:`update_mean` of ``field`` over each quarter of a run's training episodes:
+    quarter ``k`` holds ``records[k * n // 4 : (k + 1) * n // 4]`` of ``n`` (episodes, not
+    steps, are split; within a quarter episodes weigh by their length, one update per
+    step). NaN for a quarter without a finite value (fewer than 4 episodes)."""
+    n = len(records)
+    edges = [k * n // QUARTERS for k in range(QUARTERS + 1)]
+    return tuple(update_mean(records[a:b], field) for a, b in pairwise(edges))

@@ -1,12 +1,13 @@
 """Statistics over seeds that researchers trust (Agarwal et al. 2021, "Deep RL at the Edge
 of the Statistical Precipice"): the mean and the interquartile mean (IQM) of per-seed
-scores and the probability of improvement, each with a bootstrap 95% confidence interval.
+scores, the probability of improvement and the difference of two methods' means, each
+with a bootstrap 95% confidence interval.
 
 The bootstrap is scipy's (:func:`scipy.stats.bootstrap`: BCa, 10,000 resamples, a fixed
 generator so that a report is reproducible; percentile intervals where BCa is degenerate,
 e.g. with ties). Per task the seeds are one stratum, so the stratified bootstrap of
-rliable reduces to resampling seeds; the probability of improvement resamples the two
-methods' seeds independently.
+rliable reduces to resampling seeds; the probability of improvement and the mean difference
+resample the two methods' seeds independently.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ __all__ = [
     "bootstrap_ci",
     "iqm",
     "mean_ci",
+    "mean_difference",
+    "mean_difference_ci",
     "probability_of_improvement",
     "probability_of_improvement_ci",
 ]
@@ -135,6 +138,27 @@ def probability_of_improvement_ci(
     if a.size < 2 or b.size < 2 or np.all(np.concatenate([a, b]) == a[0]):
         return Estimate(point, point, point)
     lo, hi = _bootstrap((a, b), probability_of_improvement, level, seed)
+    return Estimate(point, lo, hi)
+
+
+def mean_difference(x: Any, y: Any, axis: int = -1) -> Any:
+    """mean(x) - mean(y) along ``axis`` (vectorised over leading axes, for the bootstrap)."""
+    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+
+
+def mean_difference_ci(
+    x: Sequence[float], y: Sequence[float], level: float = 0.95, seed: int = 0
+) -> Estimate:
+    """:func:`mean_difference` of two samples with a bootstrap CI (the seeds of ``x`` and of
+    ``y`` resampled independently, as for :func:`probability_of_improvement_ci`). With fewer
+    than two values in either sample, or each sample constant, the interval is the point."""
+    a, b = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if a.ndim != 1 or b.ndim != 1 or a.size == 0 or b.size == 0:
+        raise ValueError("x and y must be non-empty 1-D sequences of values")
+    point = float(mean_difference(a, b))
+    if a.size < 2 or b.size < 2 or (np.all(a == a[0]) and np.all(b == b[0])):
+        return Estimate(point, point, point)
+    lo, hi = _bootstrap((a, b), mean_difference, level, seed)
     return Estimate(point, lo, hi)
 
 

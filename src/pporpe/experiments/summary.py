@@ -9,10 +9,48 @@ from typing import Any
 import numpy as np
 
 from .figures import METHOD_LABELS
-from .results import Cell, early_return, mean_regularization, tasks_of, update_mean
-from .stats import Estimate, bootstrap_ci, iqm, mean_ci, probability_of_improvement_ci
+from .results import (
+    QUARTERS,
+    Cell,
+    early_return,
+    mean_regularization,
+    quarter_means,
+    tasks_of,
+    update_mean,
+)
+from .stats import (
+    Estimate,
+    bootstrap_ci,
+    iqm,
+    mean_ci,
+    mean_difference_ci,
+    probability_of_improvement_ci,
+)
 
-__all__ = ["Statistics", "cell_rows", "improvement_rows", "statistics"]
+__all__ = [
+    "QuarterRow",
+    "Statistics",
+    "cell_rows",
+    "improvement_rows",
+    "quarter_rows",
+    "statistics",
+]
+
+
+@dataclass(frozen=True)
+class QuarterRow:
+    """Where a surrogate acts, for one task and method: per quarter of training
+    (:func:`.results.quarter_means`), the share of updates past the threshold and the mean
+    abs(rho - 1), each the mean over seeds of the runs' update-weighted means."""
+
+    task: str
+    method: str
+    seeds: int
+    """Runs averaged (finished runs of the cell)."""
+    past: tuple[float, ...]
+    """Share of updates past the threshold, per quarter (a fraction; NaN without data)."""
+    ratio_dev: tuple[float, ...]
+    """Mean abs(rho - 1) of the updates, per quarter (NaN without data)."""
 
 
 @dataclass(frozen=True)
@@ -23,12 +61,16 @@ class Statistics:
     """Per task and method: scores, early learning, regularisation, updates past the
     threshold and abs(rho - 1) (``summary.csv``)."""
     improvements: list[dict[str, Any]]
-    """Per task and rival: the probabilities of improvement of PPO-RPE."""
+    """Per task and rival: the probabilities of improvement of PPO-RPE and the differences
+    of the means."""
+    quarters: list[QuarterRow]
+    """Per task and method: the surrogate diagnostics by quarter of training."""
 
 
 def statistics(cells: list[Cell]) -> Statistics:
-    """The tables of a report: :func:`cell_rows` and :func:`improvement_rows`."""
-    return Statistics(cell_rows(cells), improvement_rows(cells))
+    """The tables of a report: :func:`cell_rows`, :func:`improvement_rows` and
+    :func:`quarter_rows`."""
+    return Statistics(cell_rows(cells), improvement_rows(cells), quarter_rows(cells))
 
 
 def _finite(values: list[float]) -> list[float]:
@@ -74,18 +116,56 @@ def cell_rows(cells: list[Cell]) -> list[dict[str, Any]]:
     return rows
 
 
-def _per_seed(cell: Cell) -> dict[str, list[float]]:
-    """The per-seed numbers compared between methods: score, first-50 return, regularisation."""
-    return {
-        "score": list(cell.scores.values()),
-        "first50": [early_return(r) for r in cell.curves.values()],
-        "reg": [mean_regularization(r) for r in cell.curves.values()],
+def _seed_means(per_seed: list[tuple[float, ...]], quarter: int) -> float:
+    """The mean over seeds of one quarter's values (NaN where no seed has a finite one)."""
+    vals = _finite([q[quarter] for q in per_seed])
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def quarter_rows(cells: list[Cell]) -> list[QuarterRow]:
+    """One :class:`QuarterRow` per cell: ``past_threshold`` and ``ratio_dev`` by quarter of
+    training, per run (:func:`.results.quarter_means`), then averaged over seeds."""
+    rows = []
+    for c in cells:
+        by_field = []
+        for field in ("past_threshold", "ratio_dev"):
+            per_run = [quarter_means(r, field) for r in c.curves.values()]
+            by_field.append(tuple(_seed_means(per_run, k) for k in range(QUARTERS)))
+        past, dev = by_field
+        label = METHOD_LABELS.get(c.method, c.method)
+        rows.append(QuarterRow(c.env, label, len(c.curves), past, dev))
+    return rows
+
+
+def _per_seed(cell: Cell) -> dict[str, dict[int, float]]:
+    """The per-seed numbers compared between methods (score, first-50 return,
+    regularisation), by seed, finite values only."""
+    numbers = {
+        "score": dict(cell.scores),
+        "first50": {s: early_return(r) for s, r in cell.curves.items()},
+        "reg": {s: mean_regularization(r) for s, r in cell.curves.items()},
     }
+    return {
+        name: {s: v for s, v in sorted(by_seed.items()) if math.isfinite(v)}
+        for name, by_seed in numbers.items()
+    }
+
+
+def _compare(row: dict[str, Any], name: str, x: dict[int, float], y: dict[int, float]) -> None:
+    """``row``'s entries for one statistic: P(x > y) (``name_value|low|high``), the
+    difference of the means (``name_diff_*``), the numbers of seeds (``name_n``) and the
+    seed sets (``name_seeds``)."""
+    a, b = list(x.values()), list(y.values())
+    _put(row, name, probability_of_improvement_ci(a, b) if a and b else None)
+    _put(row, f"{name}_diff", mean_difference_ci(a, b) if a and b else None)
+    row[f"{name}_n"] = (len(a), len(b))
+    row[f"{name}_seeds"] = (tuple(x), tuple(y))
 
 
 def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]:
     """Per task and rival method: P(``of`` > rival) of the scores, of the early returns and
-    of the regularisation amount, each with its bootstrap CI."""
+    of the regularisation amount, and the differences of their means (``of`` minus rival),
+    each with its bootstrap CI, with the seeds compared."""
     rows = []
     for env in tasks_of(cells):
         here = {c.method: c for c in cells if c.env == env}
@@ -97,8 +177,6 @@ def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]
                 continue
             row: dict[str, Any] = {"task": env, "method": of, "rival": rival}
             for name, y in _per_seed(theirs).items():
-                x, y = _finite(mine[name]), _finite(y)
-                _put(row, name, probability_of_improvement_ci(x, y) if x and y else None)
-                row[f"{name}_n"] = (len(x), len(y))
+                _compare(row, name, mine[name], y)
             rows.append(row)
     return rows

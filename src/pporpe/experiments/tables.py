@@ -1,7 +1,8 @@
 """The report's tables: the summary as Markdown and as CSV.
 
-Scores, early learning, regularisation, updates past the threshold and the probabilities
-of improvement of PPO-RPE, from :func:`.summary.statistics`.
+Scores, early learning, regularisation, updates past the threshold (over the whole run and
+by quarter of training) and the probabilities of improvement of PPO-RPE, from
+:func:`.summary.statistics`.
 """
 
 from __future__ import annotations
@@ -12,11 +13,11 @@ import math
 from typing import Any
 
 from .figures import METHOD_LABELS
-from .results import EARLY_EPISODES, Cell
+from .results import EARLY_EPISODES, QUARTERS, Cell
 from .stats import N_RESAMPLES
-from .summary import Statistics, cell_rows, statistics
+from .summary import QuarterRow, Statistics, cell_rows, statistics
 
-__all__ = ["fmt", "fmt_ci", "summary_csv", "summary_markdown"]
+__all__ = ["fmt", "fmt_ci", "quarter_markdown", "summary_csv", "summary_markdown"]
 
 
 def fmt(x: float) -> str:
@@ -32,11 +33,40 @@ def fmt_ci(row: dict[str, Any], name: str, digits: int = 1, scale: float = 1.0) 
     return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
+def _percent(x: float) -> str:
+    """A fraction as a percentage to two decimals, ``n/a`` for NaN."""
+    return "n/a" if math.isnan(x) else f"{100.0 * x:.2f}"
+
+
+def quarter_markdown(rows: list[QuarterRow]) -> list[str]:
+    """The lines of the table of where the surrogates act: per task and method, the share
+    of updates past the threshold and the mean abs(rho - 1), by quarter of training."""
+    quarters = [f"Q{k + 1}" for k in range(QUARTERS)]
+    lines = [
+        "| task | method | "
+        + " | ".join(f"past the threshold, % {q}" for q in quarters) + " | "
+        + " | ".join(f"abs(rho - 1), % {q}" for q in quarters) + " |",
+        "| --- | --- | " + " | ".join([":---:"] * (2 * QUARTERS)) + " |",
+    ]  # fmt: skip
+    for r in rows:
+        cells = [_percent(v) for v in (*r.past, *r.ratio_dev)]
+        lines.append(f"| {r.task} | {r.method} | " + " | ".join(cells) + " |")
+    lines.append(
+        "\nWhere in training the surrogates act: a run's training episodes split in order "
+        f"into {QUARTERS} quarters Q1-Q{QUARTERS} (by episodes, not steps: of 200 episodes, "
+        "Q1 is episodes 1-50); per quarter the share of the run's updates whose ratio rho "
+        "was past the threshold and their mean abs(rho - 1), episodes weighted by their "
+        "length (an online learner updates once per step), then the mean over seeds.\n"
+    )
+    return lines
+
+
 def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     """The summary tables as Markdown: scores, early learning and regularisation per task
-    and method; the share of updates past the threshold and abs(rho - 1); then the
-    probabilities of improvement of PPO-RPE over each rival (``stats``: already computed
-    :func:`statistics` of ``cells``)."""
+    and method; the share of updates past the threshold and abs(rho - 1), over the run and
+    by quarter of training (:func:`quarter_markdown`); then the probabilities of improvement
+    of PPO-RPE over each rival (``stats``: already computed :func:`statistics` of
+    ``cells``)."""
     stats = statistics(cells) if stats is None else stats
     lines = [
         "| task | method | seeds | mean score [95% CI] | IQM [95% CI] "
@@ -73,6 +103,7 @@ def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
         "updates, then averaged over seeds. Where rho stays near 1 the three objectives give "
         "nearly the same gradient.\n"
     )
+    lines += quarter_markdown(stats.quarters)
     poi = stats.improvements
     if poi:
         lines += [
