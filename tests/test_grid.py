@@ -93,6 +93,14 @@ def test_repository_specs_parse() -> None:
         want = OnlineConfig(**{**TESTBED, "method": a.config.learner.method, "beta": 0.5,
                                "eta": 0.3})  # fmt: skip
         assert b.config == replace(a.config, learner=want)
+    # The pendulum tasks at 50 seeds: paper-full.toml's pendulum runs, seeds 0-49.
+    fifty = load_spec(ROOT / "experiments" / "paper-50seeds.toml")
+    assert len(fifty.runs) == 3 * 2 * 50
+    full_pendulums = {r.key: r.config for r in full.runs if r.env in PENDULUMS}
+    for run in fifty.runs:
+        assert run.env in PENDULUMS and 0 <= run.config.seed < 50
+        first = full_pendulums[run.key.replace(f"seed{run.config.seed}", "seed0")]
+        assert run.config == replace(first, seed=run.config.seed)
 
 
 def test_the_committed_reproduction_is_the_paper_specs_runs(tmp_path: Path) -> None:
