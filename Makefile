@@ -1,7 +1,8 @@
 # pporpe: two commands on a fresh machine.
 #   make reproduce   the main job: the quick grid + report (installs into .venv first)
 #   make test        lint, type-check, the docs site and the test suite (installs what it
-#                    needs first, with the optional extras it tests: Ray, SB3, video, docs)
+#                    needs first, with the optional extras it tests: Ray, SB3, video, docs,
+#                    MuJoCo)
 #   make docs        the documentation site into docs/_build/html (warnings are errors)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
 
@@ -20,7 +21,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.installed-dev: $(VENV)/.installed
-	$(PIP) --quiet -e ".[dev,ray,sb3,video,docs]"
+	$(PIP) --quiet -e ".[dev,ray,sb3,video,docs,mujoco]"
 	touch $@
 
 $(VENV)/.installed-docs: $(VENV)/.installed

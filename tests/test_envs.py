@@ -152,3 +152,41 @@ def test_a_bullet_client_starts_without_printing(capfd: pytest.CaptureFixture[st
     finally:
         env.close()
     assert not isinstance(make_env("Pendulum-v1"), QuietBulletStart)  # no Bullet client
+
+
+@pytest.mark.parametrize(("env_id", "obs_dim", "act_dim"), [
+    ("Hopper-v4", 11, 3), ("Hopper-v5", 11, 3), ("HalfCheetah-v4", 17, 6),
+    ("Walker2d-v4", 17, 6), ("Ant-v4", 27, 8),
+])  # fmt: skip
+def test_mujoco_tasks_build_and_step(env_id: str, obs_dim: int, act_dim: int) -> None:
+    """Gymnasium's MuJoCo tasks (the ``mujoco`` extra, installed by ``make test``)."""
+    pytest.importorskip("mujoco")
+    env = make_env(env_id, seed=0)
+    try:
+        summary = env_spec_summary(env)
+        assert (summary["obs_dim"], summary["act_dim"]) == (obs_dim, act_dim)
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (obs_dim,)
+        out = env.step(env.action_space.sample())
+        assert np.isfinite(out[1])
+    finally:
+        env.close()
+
+
+def test_gymnasium_warnings_come_once_without_colour_codes(
+    recwarn: pytest.WarningsRecorder, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Gymnasium warns that a -v4 MuJoCo task is out of date, in terminal colour codes that
+    show as raw text in a log or a progress bar: pporpe gives the warning once per process,
+    in plain text."""
+    pytest.importorskip("mujoco")
+    from pporpe import envs
+    from pporpe.envs import GymnasiumWarning
+
+    monkeypatch.setattr(envs, "_GYMNASIUM_WARNINGS_SHOWN", set())
+    for _ in range(3):
+        make_env("Walker2d-v4").close()
+    ours = [w for w in recwarn if w.category is GymnasiumWarning and "Walker2d" in str(w.message)]
+    assert len(ours) == 1
+    assert "\x1b[" not in str(ours[0].message) and "out of date" in str(ours[0].message)
+    assert not [w for w in recwarn if "\x1b[" in str(w.message)]

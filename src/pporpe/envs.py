@@ -42,7 +42,9 @@ import ctypes
 import dataclasses
 import importlib
 import os
+import re
 import sys
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -53,6 +55,7 @@ from gymnasium import spaces
 __all__ = [
     "ALIASES",
     "BULLET_STEPS",
+    "GymnasiumWarning",
     "QuietBulletStart",
     "ReplayableEnv",
     "bullet_step_choice",
@@ -223,7 +226,7 @@ def make_env(
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
         spec = _bullet_spec(env_id, step)
-    env = gymnasium.make(spec, **kwargs)
+    env = _make_with_plain_warnings(spec, **kwargs)
     if hasattr(env.unwrapped, "physicsClientId"):
         env = QuietBulletStart(env)
     act_space, obs_space = env.action_space, env.observation_space
@@ -251,6 +254,29 @@ def make_env(
     if seed is not None:
         act_space.seed(seed)
         obs_space.seed(seed)
+    return env
+
+
+_ANSI_CODES = re.compile(r"\x1b\[[0-9;]*m")
+_GYMNASIUM_WARNINGS_SHOWN: set[str] = set()
+
+
+class GymnasiumWarning(UserWarning):
+    """A warning Gymnasium gave while building a task (e.g. that a ``-v4`` MuJoCo task is
+    out of date), without the terminal colour codes Gymnasium writes into it."""
+
+
+def _make_with_plain_warnings(spec: Any, **kwargs: Any) -> gymnasium.Env:
+    """``gymnasium.make``, its warnings given again as :class:`GymnasiumWarning` in plain
+    text, each message once per process."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env = gymnasium.make(spec, **kwargs)
+    for w in caught:
+        message = _ANSI_CODES.sub("", str(w.message)).removeprefix("WARN: ")
+        if message not in _GYMNASIUM_WARNINGS_SHOWN:
+            _GYMNASIUM_WARNINGS_SHOWN.add(message)
+            warnings.warn_explicit(message, GymnasiumWarning, "gymnasium", 0)
     return env
 
 
