@@ -1,7 +1,10 @@
 """Throughput of the online learner, side by side in one process (torch on one thread),
 in alternating rounds so that machine noise hits every variant alike:
 
-* raw environment steps/s of the four tasks (random actions);
+* raw environment steps/s of the four tasks (random actions), each stepped by pporpe's
+  batched step (the default of ``make_env``) and by pybullet_envs_gymnasium's own
+  (``bullet_step="reference"``), and the physics alone (``stepSimulation`` with the same
+  client: the floor of any step);
 * the learner's µs per member-step on synthetic transitions of each task's size, for
   populations of K = 1, 4, 8, 15, 30, 60 members of mixed methods with the default
   config, by the fused engine (the default) and, at K = 1 and 30, by the torch engine
@@ -11,7 +14,8 @@ in alternating rounds so that machine noise hits every variant alike:
   minus its training time, with an empty numba cache (cold: the kernels compile) and
   with the cache that run left (warm);
 * the best K (the cheapest member-step at HalfCheetah size, the grid's dominant cost)
-  and, from its rates, the estimated wall time of experiments/paper-full.toml here.
+  and, from its rates, the estimated wall time of experiments/paper-full.toml here, with
+  either step.
 
     python benchmarks/throughput.py [--ks 1 4 8 15 30 60] [--torch-ks 1 30] [--rounds 3]
                                     [--member-steps 600] [--workers 2] [--out FILE]
@@ -31,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pybullet
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,14 +63,29 @@ def spaces(task: str) -> dict[str, Any]:
         env.close()
 
 
-def env_rate(task: str, steps: int, seed: int) -> float:
-    """Raw environment steps/s with random actions."""
-    env = make_env(task, seed=seed)
+STEPS = ("batched", "reference", "physics")
+"""What is timed per task: pporpe's step, pybullet_envs_gymnasium's, and the physics alone."""
+
+
+def env_rate(task: str, steps: int, seed: int, step: str = "batched") -> float:
+    """Raw environment steps/s with random actions (drawn before the clock starts), by
+    ``step``: ``"batched"`` or ``"reference"`` (``make_env``'s ``bullet_step``), or
+    ``"physics"``, PyBullet's ``stepSimulation`` alone on the batched environment's client."""
+    env = make_env(task, seed=seed, bullet_step="reference" if step == "reference" else None)
     env.reset(seed=seed)
     env.action_space.seed(seed)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    if step == "physics":
+        client = env.unwrapped.physicsClientId  # type: ignore[attr-defined]
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            pybullet.stepSimulation(physicsClientId=client)
+        dt = time.perf_counter() - t0
+        env.close()
+        return steps / dt
     t0 = time.perf_counter()
-    for _ in range(steps):
-        _, _, term, trunc, _ = env.step(env.action_space.sample())
+    for action in actions:
+        _, _, term, trunc, _ = env.step(action)
         if term or trunc:
             env.reset()
     dt = time.perf_counter() - t0
@@ -146,11 +166,12 @@ def measure(
     args: argparse.Namespace, benches: dict[tuple[str, str, int], Any]
 ) -> tuple[dict[str, list[float]], dict[tuple[str, str, int], list[float]]]:
     """Alternating rounds: every task's environment, then every learner, per round."""
-    env_rounds: dict[str, list[float]] = {t: [] for t in TASKS}
+    env_rounds: dict[str, list[float]] = {f"{t}/{s}": [] for t in TASKS for s in STEPS}
     cost_rounds: dict[tuple[str, str, int], list[float]] = {key: [] for key in benches}
     for r in range(args.rounds):
         for task in TASKS:
-            env_rounds[task].append(env_rate(task, args.env_steps, seed=r))
+            for step in STEPS:
+                env_rounds[f"{task}/{step}"].append(env_rate(task, args.env_steps, r, step))
         for key, bench in benches.items():
             cost_rounds[key].append(bench.run(args.member_steps))
         print(f"round {r + 1}/{args.rounds} done", flush=True)
@@ -217,11 +238,29 @@ def paper_estimate(
     }
 
 
-def print_report(env_s: dict[str, float], rows: list[dict[str, Any]], est: dict[str, Any],
-                 start: dict[str, Any]) -> None:  # fmt: skip
-    print(f"\n{'task':12s} {'env us/step':>12s}")
+def env_step_rows(env_rounds: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    """Per task the median µs per step of each of :data:`STEPS` and the batched step's
+    ratios to the reference step and to the physics."""
+    rows = {}
     for task in TASKS:
-        print(f"{task:12s} {env_s[task] * 1e6:12.0f}")
+        us = {s: 1e6 / statistics.median(env_rounds[f"{task}/{s}"]) for s in STEPS}
+        rows[task] = {
+            **{f"{s}_us": v for s, v in us.items()},
+            "batched_over_reference": us["batched"] / us["reference"],
+            "batched_over_physics": us["batched"] / us["physics"],
+        }
+    return rows
+
+
+def print_report(env: dict[str, dict[str, float]], rows: list[dict[str, Any]],
+                 est: dict[str, Any], est_ref: dict[str, Any],
+                 start: dict[str, Any]) -> None:  # fmt: skip
+    print(f"\n{'task':12s} {'batched us':>11s} {'reference us':>13s} {'physics us':>11s} "
+          f"{'/reference':>11s} {'/physics':>9s}")  # fmt: skip
+    for task, e in env.items():
+        print(f"{task:12s} {e['batched_us']:11.0f} {e['reference_us']:13.0f} "
+              f"{e['physics_us']:11.0f} {e['batched_over_reference']:11.2f} "
+              f"{e['batched_over_physics']:9.2f}")  # fmt: skip
     head = (f"{'task':12s} {'engine':7s} {'K':>3s} {'us/member-step':>15s} {'/env':>6s} "
             f"{'vs torch K=1':>13s}")  # fmt: skip
     print("\n" + head + "\n" + "-" * len(head))
@@ -233,7 +272,8 @@ def print_report(env_s: dict[str, float], rows: list[dict[str, Any]], est: dict[
     print(f"\nstart-up of `{start['command']}`: cold {start['cold']['startup_s']:.1f} s, "
           f"warm {start['warm']['startup_s']:.1f} s")  # fmt: skip
     print(f"\nbest K {est['K']}; estimated wall time of experiments/paper-full.toml: "
-          f"{est['wall_hours']:.1f} h ({est['cpu_hours']:.1f} CPU hours)")  # fmt: skip
+          f"{est['wall_hours']:.1f} h ({est['cpu_hours']:.1f} CPU hours); with the "
+          f"reference step {est_ref['wall_hours']:.1f} h")  # fmt: skip
 
 
 def main() -> None:
@@ -253,16 +293,21 @@ def main() -> None:
     start = startup()
     specs = {t: spaces(t) for t in TASKS}
     env_rounds, cost_rounds = measure(args, build(args, specs))
-    env_s = {t: 1.0 / statistics.median(v) for t, v in env_rounds.items()}
+    env = env_step_rows(env_rounds)
+    env_s = {t: e["batched_us"] / 1e6 for t, e in env.items()}
     rows = result_rows(env_s, cost_rounds)
     k = best_k(rows)
     learner_s = {t: statistics.median(cost_rounds[(t, "fused", k)]) for t in TASKS}
     est = paper_estimate(env_s, learner_s, args.workers, k)
-    print_report(env_s, rows, est, start)
+    env_ref = {t: e["reference_us"] / 1e6 for t, e in env.items()}
+    est_ref = paper_estimate(env_ref, learner_s, args.workers, k)
+    print_report(env, rows, est, est_ref, start)
     payload = {"rounds": args.rounds, "member_steps": args.member_steps,
+               "env_steps": args.env_steps, "env_step": env,
                "env_steps_per_s": {t: 1 / s for t, s in env_s.items()},
                "env_rounds_steps_per_s": env_rounds, "rows": rows, "best_k": k,
-               "startup": start, "paper_grid_estimate": est}  # fmt: skip
+               "startup": start, "paper_grid_estimate": est,
+               "paper_grid_estimate_reference_step": est_ref}  # fmt: skip
     print(f"wrote {write_json(args.out, payload)}")
 
 

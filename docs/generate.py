@@ -411,17 +411,34 @@ def startup_line(data: dict[str, Any]) -> str:
 
 
 def estimate_lines(data: dict[str, Any]) -> list[str]:
-    est = data["paper_grid_estimate"]
+    est, ref = data["paper_grid_estimate"], data["paper_grid_estimate_reference_step"]
     per_task = ", ".join(
         f"{TASKS.get(t, t)} {v['cpu_hours']:.1f}" for t, v in est["per_task"].items()
     )
     return [
-        f"The best population size is K = {data['best_k']} (the cheapest member-step at "
-        f"HalfCheetah's size), the default of `pporpe reproduce --population`. From its "
+        f"The best population size in this measurement is K = {data['best_k']} (the "
+        f"cheapest member-step at HalfCheetah's size; `pporpe reproduce --population` sets "
+        f"K). From its "
         f"rates, the estimate for the paper's full grid (`experiments/paper-full.toml`): "
         f"{est['wall_hours']:.1f} hours on 2 workers, {est['cpu_hours']:.1f} CPU hours "
-        f"({per_task}). Formula: {est['formula']}.",
+        f"({per_task}); with pybullet_envs_gymnasium's step instead of pporpe's, "
+        f"{ref['wall_hours']:.1f} hours ({ref['cpu_hours']:.1f} CPU hours). "
+        f"Formula: {est['formula']}.",
     ]
+
+
+def env_step_table(data: dict[str, Any]) -> list[str]:
+    """Per task the µs of a step by pporpe's batched step, by pybullet_envs_gymnasium's
+    own, and of the physics alone, with the ratios."""
+    rows = [
+        [TASKS.get(task, task), f"{e['batched_us']:.0f}", f"{e['reference_us']:.0f}",
+         f"{e['physics_us']:.0f}", f"{e['batched_over_reference']:.2f}x",
+         f"{e['batched_over_physics']:.2f}x"]
+        for task, e in data["env_step"].items()
+    ]  # fmt: skip
+    head = ["task", "pporpe's step", "reference step", "physics alone", "pporpe / reference",
+            "pporpe / physics"]  # fmt: skip
+    return table(head, rows, ["---", *["---:"] * 5])
 
 
 def throughput_page(root: Path) -> str:
@@ -447,6 +464,17 @@ def throughput_page(root: Path) -> str:
         startup_line(data),
         "",
         *estimate_lines(data),
+        "",
+        "## The environment step",
+        "",
+        "Microseconds per step of each Bullet task (random actions, resets included; "
+        "medians of the same alternating rounds): pporpe's step (`pporpe.bullet_step`, the "
+        "default of `pporpe.envs.make_env`, the same numbers bit for bit, "
+        "[see getting started](../getting-started.md)), pybullet_envs_gymnasium's own "
+        "(`bullet_step=\"reference\"`), and PyBullet's `stepSimulation` alone, the floor "
+        "of any step. The *env step* above is pporpe's.",
+        "",
+        *env_step_table(data),
     ]
     return "\n".join(lines) + "\n"
 
