@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from pporpe.batch import BatchConfig
 from pporpe.cli import main
 from pporpe.experiments.grid import load_spec, parse_spec
 from pporpe.experiments.progress import RECENT_EPISODES, GridProgress, RunProgress, run_progress
@@ -101,6 +102,35 @@ def test_repository_specs_parse() -> None:
         assert run.env in PENDULUMS and 0 <= run.config.seed < 50
         first = full_pendulums[run.key.replace(f"seed{run.config.seed}", "seed0")]
         assert run.config == replace(first, seed=run.config.seed)
+
+
+CLEANRL_PPO_CONTINUOUS = {
+    "n_envs": 1, "n_steps": 2048, "batch_size": 64, "n_epochs": 10, "lr": 3e-4,
+    "lr_schedule": "linear", "adam_eps": 1e-5, "gamma": 0.99, "gae_lambda": 0.95, "eps": 0.2,
+    "clip_vf": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
+    "adv_norm": "minibatch", "normalize_obs": True, "normalize_reward": True, "clip_obs": 10.0,
+    "clip_reward": 10.0, "bootstrap_truncated": False, "policy": "normal", "scale": "global",
+    "log_std_init": 0.0, "action_bound": "clip", "layers": 2, "units": 64,
+    "activation": "tanh", "layer_norm": False, "init": "orthogonal",
+}  # fmt: skip
+"""CleanRL's ppo_continuous_action.py (its defaults: 1 env, 2048 steps, 32 minibatches, 10
+epochs, annealed lr, clipped value loss, next_done = terminations | truncations, ...) in
+BatchConfig's fields."""
+
+
+def test_the_batch_mujoco_study_runs_cleanrls_settings() -> None:
+    """experiments/batch-mujoco.toml: 3 methods x 4 MuJoCo -v4 tasks x 10 seeds x 1M steps,
+    every run with CleanRL's settings and the same eps; PPO-RB eta 0.3, PPO-RPE beta 0.5."""
+    study = load_spec(ROOT / "experiments" / "batch-mujoco.toml")
+    assert len(study.runs) == 3 * 4 * 10
+    assert study.methods == ["ppo", "rb", "rpe"]
+    assert study.envs == ["HalfCheetah-v4", "Hopper-v4", "Walker2d-v4", "Ant-v4"]
+    for run in study.runs:
+        cfg = run.config
+        assert isinstance(cfg, BatchConfig)
+        assert {k: getattr(cfg, k) for k in CLEANRL_PPO_CONTINUOUS} == CLEANRL_PPO_CONTINUOUS
+        assert (cfg.total_steps, cfg.eta, cfg.beta, cfg.eval_episodes) == (1_000_000, 0.3, 0.5, 50)
+        assert 0 <= cfg.seed < 10
 
 
 def test_the_committed_reproduction_is_the_paper_specs_runs(tmp_path: Path) -> None:
