@@ -24,6 +24,7 @@ standard library is used, so this runs before anything is installed.
 from __future__ import annotations
 
 import argparse
+import ast
 import csv
 import json
 import re
@@ -600,6 +601,52 @@ def engines_page(root: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+# --- The columns of episodes.csv (docs/run-folders.md) -----------------------------------
+
+COLUMNS_START = (
+    "<!-- columns: written by python docs/generate.py from pporpe.runs.logger.COLUMNS and "
+    "the fields' docstrings; edit those, not here -->"
+)
+COLUMNS_END = "<!-- end of columns -->"
+
+
+def field_docs(path: Path, classes: tuple[str, ...]) -> dict[str, str]:
+    """The docstring under each annotated field of ``classes`` in the module at ``path``
+    (read with ``ast``: nothing is imported)."""
+    docs: dict[str, str] = {}
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if not isinstance(node, ast.ClassDef) or node.name not in classes:
+            continue
+        for field, doc in zip(node.body, node.body[1:], strict=False):
+            if isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name):
+                if isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant):
+                    docs[field.target.id] = " ".join(str(doc.value.value).split())
+    return docs
+
+
+def column_names(path: Path) -> list[str]:
+    """``COLUMNS`` of the module at ``path`` (``pporpe.runs.logger``), read with ``ast``."""
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "COLUMNS":
+            return list(ast.literal_eval(node.value))  # type: ignore[arg-type]
+    raise ValueError(f"{path} defines no COLUMNS")
+
+
+def with_run_folder_columns(root: Path) -> str:
+    """docs/run-folders.md with the table of episodes.csv's columns rewritten."""
+    runs = root / "src" / "pporpe" / "runs"
+    docs = {**field_docs(runs / "kinds.py", ("SurrogateDiagnostics",)),
+            **field_docs(runs / "logger.py", ("EpisodeRecord",))}  # fmt: skip
+    names = column_names(runs / "logger.py")
+    rows = [[f"`{name}`", docs[name].replace("|", "\\|")] for name in names]
+    block = "\n".join([COLUMNS_START, *table(["column", "what it holds"], rows), COLUMNS_END])
+    text = (root / "docs" / "run-folders.md").read_text(encoding="utf-8")
+    start, end = text.find(COLUMNS_START), text.find(COLUMNS_END)
+    if start < 0 or end < start:
+        raise ValueError(f"docs/run-folders.md lacks the markers {COLUMNS_START!r} ...")
+    return text[:start] + block + text[end + len(COLUMNS_END) :]
+
+
 PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
@@ -608,6 +655,7 @@ PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/vs-sb3.md": vs_sb3_page,
     "docs/results/engines.md": engines_page,
     "README.md": with_readme_results,
+    "docs/run-folders.md": with_run_folder_columns,
 }
 """Each generated file (relative to the repository root) and the function that writes it."""
 

@@ -24,6 +24,9 @@ SOURCES = [
     "results/paper-testbed/summary.csv",
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
+    "docs/run-folders.md",
+    "src/pporpe/runs/logger.py",
+    "src/pporpe/runs/kinds.py",
 ]
 
 
@@ -52,10 +55,15 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
     text = readme.read_text()
     start, end = text.index(gen.README_START), text.index(gen.README_END)
     readme.write_text(text[:start] + gen.README_START + "\n" + text[end:])  # table emptied
+    folders = tmp_path / "docs/run-folders.md"
+    columns = folders.read_text()
+    start, end = columns.index(gen.COLUMNS_START), columns.index(gen.COLUMNS_END)
+    folders.write_text(columns[:start] + gen.COLUMNS_START + "\n" + columns[end:])
     assert sorted(gen.stale(tmp_path)) == sorted(gen.PAGES)
     assert gen.main(["--root", str(tmp_path)]) == 0
     assert gen.stale(tmp_path) == []
     assert readme.read_text() == text  # the table is back, the rest untouched
+    assert folders.read_text() == columns  # and the columns
     report = tmp_path / "results/paper/REPORT.md"
     report.write_text(report.read_text().replace("0.58 [0.39, 0.75]", "0.61 [0.40, 0.77]"))
     capsys.readouterr()
