@@ -518,3 +518,42 @@ def test_engine_shadow_refuses_bad_input_before_any_work(
     with pytest.raises(SystemExit):
         es.main(argv)
     assert named in capsys.readouterr().err
+
+
+def test_cleanrl_output_is_read_and_summed_as_cleanrl_does() -> None:
+    """benchmarks/cleanrl.py reads the episodic returns and steps/s that CleanRL's script
+    prints, and its metric is the mean of the last 100 training episodes."""
+    import cleanrl
+
+    text = ("global_step=21, episodic_return=[12.5]\nSPS: 900\nnoise\n"
+            "global_step=60, episodic_return=[-3.25]\nglobal_step=99, episodic_return=7\n"
+            "SPS: 1043\n")  # fmt: skip
+    parsed = cleanrl.parse_cleanrl_output(text)
+    assert parsed == {"episode_steps": [21, 60, 99], "returns": [12.5, -3.25, 7.0],
+                      "steps_per_s": 1043.0}  # fmt: skip
+    returns = list(range(150))
+    assert cleanrl.last_mean(returns) == pytest.approx(np.mean(range(50, 150)))  # 99.5
+    assert cleanrl.last_mean([4.0, 6.0]) == 5.0
+    with pytest.raises(ValueError):
+        cleanrl.last_mean([])
+    run = {"episode_steps": [10, 20, 30], "returns": [1.0, 3.0, 8.0]}
+    got = cleanrl.curve(run, np.array([5, 10, 25, 30, 40]))
+    assert np.isnan(got[0])
+    assert got[1:].tolist() == [1.0, 2.0, 4.0, 4.0]  # the mean of the episodes ended by then
+
+
+def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
+    import cleanrl
+
+    def run(impl: str, seed: int, value: float) -> dict[str, Any]:
+        return {"implementation": impl, "task": "Hopper-v4", "seed": seed,
+                "last100_mean": value, "steps_per_s": 1000.0}  # fmt: skip
+
+    assert cleanrl.task_row([run("cleanrl", 1, 5.0)], "Hopper-v4") is None
+    runs = [run("pporpe", s, v) for s, v in enumerate([3.0, 4.0, 6.0])]
+    runs += [run("cleanrl", s, v) for s, v in enumerate([2.0, 5.0])]
+    row = cleanrl.task_row(runs, "Hopper-v4")
+    assert row is not None and row["seeds"] == {"pporpe": 3, "cleanrl": 2}
+    # pairs won: 3>2, 4>2, 6>2, 6>5: 4 of 6
+    assert row["p_pporpe_better"]["value"] == pytest.approx(4 / 6)
+    assert row["pporpe"]["value"] == pytest.approx(13 / 3)
