@@ -89,3 +89,44 @@ def test_ray_backend_matches_local_backend(ray_head: str, tmp_path: Path) -> Non
         assert (tmp_path / "ray" / run.key / "evaluation.json").read_text() == (
             tmp_path / "local" / run.key / "evaluation.json"
         ).read_text()
+
+
+def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
+    ray_head: str, tmp_path: Path
+) -> None:
+    """kill -9 of the Ray worker running a population: Ray runs the task again, which
+    resumes from the population's checkpoint, and every record is what an uninterrupted
+    local run writes."""
+    import threading
+
+    from pporpe.runs.population_checkpoint import CHECKPOINT
+
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC.replace("episodes = 3", "episodes = 400"))
+    spec = load_spec(spec_path)
+    out = tmp_path / "ray"
+    outcome: list[object] = []
+    grid = threading.Thread(target=lambda: outcome.append(reproduce(
+        spec, out, backend="ray", address=ray_head, progress=False, checkpoint_seconds=0.1)))  # fmt: skip
+    grid.start()
+    killed = False
+    for _ in range(1200):  # until the population's first checkpoint, then kill its worker
+        if list(out.glob(f"populations/*/{CHECKPOINT}")):
+            workers = subprocess.run(["pgrep", "-f", "ray::run_job"], capture_output=True,
+                                     text=True).stdout.split()  # fmt: skip
+            done_before = len(list(out.glob("*/*/seed*/done.json")))
+            for pid in workers:
+                subprocess.run(["kill", "-9", pid])
+            killed = bool(workers)
+            break
+        grid.join(0.05)
+    grid.join(600)
+    assert killed and done_before < len(spec.runs), "the worker was not killed mid-task"
+    assert outcome and outcome[0].ok  # type: ignore[attr-defined]
+    local = reproduce(spec, tmp_path / "local", backend="local", workers=1, progress=False)
+    assert local.ok
+    for run in spec.runs:
+        got = read_records(out / run.key / "episodes.csv")
+        want = read_records(tmp_path / "local" / run.key / "episodes.csv")
+        assert len(got) == 400
+        assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]

@@ -27,6 +27,10 @@ __all__ = ["BACKENDS", "run_job", "run_local", "run_ray"]
 
 BACKENDS = ("local", "ray")
 
+RAY_RETRIES = 3
+"""How many times Ray runs a job again whose worker died (not for an error in the job:
+a failed run is recorded in its folder, and the job returns)."""
+
 
 @contextlib.contextmanager
 def _run_lock(run_dir: Path) -> Iterator[None]:
@@ -149,7 +153,9 @@ def run_ray(
     if started_here:
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        # a worker that dies (killed, out of memory, its node lost) is retried: the task
+        # resumes its runs from their checkpoints, with the same records
+        remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
         refs = [remote.remote(j.home, j.runs, j.population, checkpoint_seconds) for j in jobs]
         results: list[dict[str, Any]] = []
         total_cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
