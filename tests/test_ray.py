@@ -106,8 +106,11 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
     spec = load_spec(spec_path)
     out = tmp_path / "ray"
     outcome: list[object] = []
-    grid = threading.Thread(target=lambda: outcome.append(reproduce(
-        spec, out, backend="ray", address=ray_head, progress=False, checkpoint_seconds=0.1)))  # fmt: skip
+    def run_grid() -> None:
+        outcome.append(reproduce(spec, out, backend="ray", address=ray_head, progress=False,
+                                 checkpoint_seconds=0.1))  # fmt: skip
+
+    grid = threading.Thread(target=run_grid)
     grid.start()
     killed = False
     for _ in range(1200):  # until the population's first checkpoint, then kill its worker
