@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io import atomic_write_json
+from ..runs.folder import CHECKPOINT, check_checkpoint
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
 from .merge import merged_grid_summary
@@ -100,6 +101,15 @@ def _split_finished(spec: GridSpec, out_dir: Path) -> tuple[list[str], list[tupl
     return skipped, todo
 
 
+def _check_checkpoints(jobs: list[Job]) -> None:
+    """Refuse, before any work, a checkpoint of the jobs (a run's own or a population's)
+    that would run code when read (:func:`~pporpe.runs.folder.check_checkpoint`)."""
+    for job in jobs:
+        for folder in dict.fromkeys([job.home, *(d for d, _ in job.runs)]):
+            if (path := Path(folder) / CHECKPOINT).is_file():
+                check_checkpoint(path)
+
+
 def _run_jobs(
     jobs: list[Job], backend: str, workers: int, address: str | None,
     bar: GridProgress, checkpoint_seconds: float,
@@ -152,14 +162,14 @@ def reproduce(
     """
     _check_arguments(backend, workers, address, population, checkpoint_seconds)
     out_dir = Path(out).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    listed = spec if whole is None else whole  # a chunk lists the whole grid
-    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
-
     t0 = time.perf_counter()
     skipped, todo = _split_finished(spec, out_dir)
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
+    _check_checkpoints(jobs)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    listed = spec if whole is None else whole  # a chunk lists the whole grid
+    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
     results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds)

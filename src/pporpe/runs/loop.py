@@ -44,7 +44,14 @@ from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
-from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read_config
+from .folder import (
+    CHECKPOINT,
+    check_checkpoint,
+    config_json,
+    load_checkpoint,
+    open_run_dir,
+    read_config,
+)
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
 from .logger import EpisodeRecord, RunLogger, read_records
@@ -419,6 +426,17 @@ def _pending_runs(
     return pending
 
 
+def _check_checkpoints(dirs: list[Path], population: PopulationCheckpoint | None) -> None:
+    """Refuse, before any work, a checkpoint that would run code when read
+    (:func:`~pporpe.runs.folder.check_checkpoint`): the runs' own and the population's."""
+    files = [d / CHECKPOINT for d in dirs]
+    if population is not None:
+        files.append(population.file)
+    for path in files:
+        if path.is_file():
+            check_checkpoint(path)
+
+
 def run_queue(
     runs: Sequence[tuple[Any, str | Path]],
     capacity: int = 1,
@@ -464,6 +482,7 @@ def run_queue(
         population = (
             PopulationCheckpoint(Path(home), dirs) if home is not None and capacity > 1 else None
         )
+        _check_checkpoints([dirs[i] for i in pending], population)
         hooks = _Hooks(progress, on_episode, on_chunk, checkpoint_seconds)
         slots = max(1, min(capacity, len(pending)))
         with _torch_threads(num_threads):
