@@ -44,6 +44,7 @@ from gymnasium import spaces
 
 __all__ = [
     "ALIASES",
+    "MUJOCO_INSTALL",
     "QuietBulletStart",
     "ReplayableEnv",
     "env_spec_summary",
@@ -60,6 +61,20 @@ ALIASES: dict[str, str] = {
 """Short names of the paper's four tasks and their Gymnasium ids."""
 
 _BULLET_PACKAGE = "pybullet_envs_gymnasium"
+
+MUJOCO_INSTALL = 'pip install "gymnasium[mujoco]"'
+"""What to install for Gymnasium's MuJoCo tasks (``HalfCheetah-v5``, ``Ant-v5``, ...): the
+one place the error of a MuJoCo task without MuJoCo takes it from."""
+
+_MUJOCO_ENTRY_POINTS = "gymnasium.envs.mujoco"
+
+
+def _missing_dependency(env_id: str, entry_point: Any, exc: Exception) -> ImportError:
+    """The one-line error of a task whose package is not installed, saying what to install."""
+    if isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS):
+        return ImportError(f"{env_id} needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
+    reason = (str(exc).strip().splitlines() or ["a package is missing"])[0]
+    return ImportError(f"{env_id} cannot be built: {reason}")
 
 
 def _aliases_text() -> str:
@@ -168,12 +183,17 @@ def make_env(name: str, seed: int | None = None, **kwargs: Any) -> gymnasium.Env
         ValueError: unknown name; an action space that is not a
             ``gymnasium.spaces.Box`` or not 1-D with finite bounds; an observation
             space that is not a 1-D Box.
+        ImportError: the task's package is not installed (a MuJoCo task without MuJoCo:
+            :data:`MUJOCO_INSTALL`), saying what to install.
     """
     env_id = resolve_env_id(name)
     entry_point = gymnasium.envs.registry[env_id].entry_point
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
-    env = gymnasium.make(env_id, **kwargs)
+    try:
+        env = gymnasium.make(env_id, **kwargs)
+    except gymnasium.error.DependencyNotInstalled as exc:
+        raise _missing_dependency(env_id, entry_point, exc) from None
     if hasattr(env.unwrapped, "physicsClientId"):
         env = QuietBulletStart(env)
     act_space, obs_space = env.action_space, env.observation_space

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -57,11 +58,13 @@ class GridOutcome:
     """Keys that were already finished when this call started."""
     wall_time: float
     """Seconds this call took."""
+    interrupted: list[str] = field(default_factory=list)
+    """Keys of the runs stopped by ``stop`` (Ctrl-C), each at its last checkpoint."""
 
     @property
     def ok(self) -> bool:
         """Whether every run finished."""
-        return not self.failed
+        return not self.failed and not self.interrupted
 
 
 def _is_count(x: Any) -> bool:
@@ -112,15 +115,15 @@ def _check_checkpoints(jobs: list[Job]) -> None:
 
 def _run_jobs(
     jobs: list[Job], backend: str, workers: int, address: str | None,
-    bar: GridProgress, checkpoint_seconds: float,
+    bar: GridProgress, checkpoint_seconds: float, stop: Callable[[], bool] | None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Every job's run statuses, from the chosen backend; the bar is closed after."""
     try:
         if not jobs:
             return []
         if backend == "local":
-            return run_local(jobs, min(workers, len(jobs)), bar, checkpoint_seconds)
-        return run_ray(jobs, address, bar, checkpoint_seconds)
+            return run_local(jobs, min(workers, len(jobs)), bar, checkpoint_seconds, stop)
+        return run_ray(jobs, address, bar, checkpoint_seconds, stop)
     finally:
         bar.close()
 
@@ -132,12 +135,16 @@ def _outcome(
     key_of = {str(out_dir / run.key): run.key for run in spec.runs}
     done = list(skipped)
     failed: dict[str, str] = {}
+    interrupted: list[str] = []
     for res in results:
+        key = key_of[res["run_dir"]]
         if res["status"] == "done":
-            done.append(key_of[res["run_dir"]])
+            done.append(key)
+        elif res["status"] == "interrupted":
+            interrupted.append(key)
         else:
-            failed[key_of[res["run_dir"]]] = res["error"]
-    return GridOutcome(done, failed, skipped, time.perf_counter() - t0)
+            failed[key] = res["error"]
+    return GridOutcome(done, failed, skipped, time.perf_counter() - t0, interrupted)
 
 
 def reproduce(
@@ -150,6 +157,7 @@ def reproduce(
     population: int = DEFAULT_POPULATION,
     checkpoint_seconds: float = DEFAULT_CHECKPOINT_SECONDS,
     whole: GridSpec | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> GridOutcome:
     """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome.
 
@@ -159,6 +167,10 @@ def reproduce(
     Online runs of one task are trained ``population`` at a time by one worker
     (:func:`~.planning.plan_jobs`); their checkpoints are written at most every
     ``checkpoint_seconds``. ``status.json`` in ``out`` records the outcome.
+
+    ``stop`` is asked every few seconds while jobs run; when it turns True (``pporpe
+    reproduce`` passes Ctrl-C's request), every running run is checkpointed at its next
+    step and the call returns with those runs, and the ones not started, ``interrupted``.
     """
     _check_arguments(backend, workers, address, population, checkpoint_seconds)
     out_dir = Path(out).resolve()
@@ -172,7 +184,7 @@ def reproduce(
     atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
-    results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds)
+    results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds, stop)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
     status = {
