@@ -202,6 +202,7 @@ def test_ctrl_c_in_a_grid_checkpoints_every_run_and_says_one_line(tmp_path: Path
     assert sorted(len(m["records"]) for m in members.values()) == sorted(rows(c) for c in csvs)
     status = json.loads((out / "status.json").read_text())
     assert (status["done"], status["failed"]) == ([], {})
+    assert status["pending"] == ["pendulum/ppo/seed0", "pendulum/rpe/seed0"]
 
 
 def missing(module: str) -> bool:

@@ -25,11 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_write_json
 from ..runs.folder import CHECKPOINT, check_checkpoint
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
-from .merge import merged_grid_summary
+from .merge import merged_grid_summary, write_grid_summary, write_status
 from .planning import Job, plan_jobs
 from .progress import GridProgress
 
@@ -166,7 +165,8 @@ def reproduce(
 
     Online runs of one task are trained ``population`` at a time by one worker
     (:func:`~.planning.plan_jobs`); their checkpoints are written at most every
-    ``checkpoint_seconds``. ``status.json`` in ``out`` records the outcome.
+    ``checkpoint_seconds``. ``status.json`` in ``out`` counts the runs of the whole grid
+    (:mod:`.merge`); a call that trains nothing leaves it and ``grid.json`` as they are.
 
     ``stop`` is asked every few seconds while jobs run; when it turns True (``pporpe
     reproduce`` passes Ctrl-C's request), every running run is checkpointed at its next
@@ -181,18 +181,12 @@ def reproduce(
     _check_checkpoints(jobs)
     out_dir.mkdir(parents=True, exist_ok=True)
     listed = spec if whole is None else whole  # a chunk lists the whole grid
-    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
+    listing_changed = write_grid_summary(out_dir, listed)
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
     results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds, stop)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
-    status = {
-        "done": sorted(outcome.done),
-        "failed": outcome.failed,
-        "skipped": sorted(skipped),
-        "wall_time_s": outcome.wall_time,
-        "backend": backend,
-    }
-    atomic_write_json(out_dir / "status.json", status)
+    seconds = outcome.wall_time if jobs else 0.0
+    write_status(out_dir, outcome.failed, seconds, backend, bool(jobs) or listing_changed)
     return outcome

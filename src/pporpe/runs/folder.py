@@ -36,6 +36,7 @@ __all__ = [
     "load_checkpoint",
     "open_run_dir",
     "read_config",
+    "same_run_config",
     "save_checkpoint",
 ]
 
@@ -56,6 +57,13 @@ def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
         return kind.name, config_from_dict(kind.config_type, body)
     except (KeyError, ValueError):
         return None
+
+
+def same_run_config(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two ``config.json`` contents are the same run: equal as parsed settings, so
+    a field added by a later pporpe version, at the value the run ran with, is no change."""
+    stored = _parsed(a)
+    return stored is not None and stored == _parsed(b)
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -113,8 +121,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
         atomic_write_json(path, config)
     else:
         saved = _read_json(path)
-        stored = _parsed(saved)
-        if stored is None or stored != _parsed(config):
+        if not same_run_config(saved, config):
             differ = _differences(upgrade_config(saved), upgrade_config(config))
             raise ValueError(
                 f"{run} holds a run with a different config (differing: "
