@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..envs import make_env
 from ..runs.folder import CHECKPOINT, check_checkpoint
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
@@ -103,6 +104,17 @@ def _split_finished(spec: GridSpec, out_dir: Path) -> tuple[list[str], list[tupl
     return skipped, todo
 
 
+def _check_tasks(source: str, cfgs: list[Any]) -> None:
+    """Build the task of every run still to train, once each, so that a task the learners
+    cannot use (discrete actions, a missing package) is refused before any folder is
+    written, naming the spec."""
+    for env in dict.fromkeys(cfg.env for cfg in cfgs):
+        try:
+            make_env(env).close()
+        except ValueError as exc:
+            raise ValueError(f"{source}: task {env!r}: {exc}") from None
+
+
 def _check_checkpoints(jobs: list[Job]) -> None:
     """Refuse, before any work, a checkpoint of the jobs (a run's own or a population's)
     that would run code when read (:func:`~pporpe.runs.folder.check_checkpoint`)."""
@@ -174,12 +186,18 @@ def reproduce(
     """
     _check_arguments(backend, workers, address, population, checkpoint_seconds)
     out_dir = Path(out).resolve()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"the results folder {out} is an existing file; choose another --out")
     t0 = time.perf_counter()
     skipped, todo = _split_finished(spec, out_dir)
+    _check_tasks(spec.source, [cfg for _, cfg in todo])
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
     _check_checkpoints(jobs)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot create the results folder {out}: {exc.strerror}") from None
     listed = spec if whole is None else whole  # a chunk lists the whole grid
     listing_changed = write_grid_summary(out_dir, listed)
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
