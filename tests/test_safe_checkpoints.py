@@ -20,7 +20,13 @@ import torch
 import pporpe
 from pporpe.experiments.grid import load_spec
 from pporpe.experiments.planning import plan_jobs
-from pporpe.runs.folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir
+from pporpe.runs.folder import (
+    CHECKPOINT,
+    config_json,
+    load_checkpoint,
+    open_run_dir,
+    save_checkpoint,
+)
 from pporpe.runs.kinds import kind_of
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -159,6 +165,40 @@ def test_a_grid_refuses_code_before_any_work(tmp_path: Path, where: str) -> None
     assert f"{target} is not a safe checkpoint" in line
     assert not marker.exists()
     assert listing(out) == before  # no grid.json, status.json, .lock or records
+
+
+DATA = {
+    "empty array": np.zeros((0,), np.float32),  # an episode's replay before its first action
+    "empty 2-d": np.zeros((0, 3)),
+    "array": np.arange(6, dtype=np.int64)[::2],
+    "fortran": np.asfortranarray(np.ones((2, 2))),
+    "0-d": np.array(2.5),
+    "bool array": np.zeros(3, np.bool_),
+    "complex": np.ones(2, np.complex64),
+    "numpy scalars": [np.float64(0.5), np.float32(1.5), np.int64(3), np.bool_(True)],
+    "bit generator": np.random.default_rng(0).bit_generator.state,
+    "torch rng": torch.get_rng_state(),
+    "plain": [b"", b"abc", (1, 2), 10**40, None, float("inf"), "text"],
+}
+
+
+@pytest.mark.parametrize("name", list(DATA))
+def test_the_data_checkpoints_hold_loads_as_it_was_saved(tmp_path: Path, name: str) -> None:
+    """What run states hold (numpy arrays of every shape, numpy scalars, random states)
+    loads back equal and of the same types."""
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "value": DATA[name]})
+    got = load_checkpoint(tmp_path)["value"]
+    want = DATA[name]
+    assert type(got) is type(want) and repr(got) == repr(want)
+    if isinstance(want, np.ndarray):
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_numpy_object_arrays_are_refused(tmp_path: Path) -> None:
+    """Object arrays could hold anything; no run state has one."""
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "value": np.array([1, "a"], object)})
+    with pytest.raises(ValueError, match="is not a safe checkpoint"):
+        load_checkpoint(tmp_path)
 
 
 def test_checkpoints_written_under_numpy_1_still_load(tmp_path: Path) -> None:

@@ -175,6 +175,7 @@ def _allowed_globals() -> list[Any]:
     scalar = np.float64(0.0).__reduce__()[0]  # numpy._core.multiarray.scalar
     dtypes = dict.fromkeys(type(np.dtype(code)) for code in "?bBhHiIlLqQefdgFDG")
     return [
+        bytes,  # an empty array's data: protocol 2 pickles b"" as bytes()
         np.ndarray, np.dtype, reconstruct, scalar, *dtypes,
         (reconstruct, "numpy.core.multiarray._reconstruct"),
         (scalar, "numpy.core.multiarray.scalar"),
