@@ -273,11 +273,13 @@ def test_mean_ci_matches_hand_computation() -> None:
 
 
 def test_failed_run_leaves_traceback_and_others_continue(tmp_path: Path) -> None:
-    text = TINY_SPEC.replace('env = "pendulum"', 'env = "pporpe-test/Broken-v0"')
+    text = TINY_SPEC.replace('env = "pendulum"', 'env = "pporpe-test/HereOnly-v0"')
     import gymnasium as gym
 
-    # registered in this process only: its entry point cannot be imported anywhere
-    gym.register("pporpe-test/Broken-v0", entry_point="pporpe_no_such_module:Env")
+    # registered in this process only: it builds here (so the grid's check of its tasks
+    # passes) and is unknown in the workers, where every run fails
+    pendulum = gym.envs.registry["Pendulum-v1"].entry_point
+    gym.register("pporpe-test/HereOnly-v0", entry_point=pendulum)
     spec = load_spec(write_spec(tmp_path, text))
     outcome = reproduce(spec, tmp_path / "out", workers=1, backend="local", progress=False)
     assert len(outcome.failed) == len(spec.runs) and not outcome.ok

@@ -12,6 +12,13 @@ from typing import Any
 
 __all__ = ["build_parser", "main"]
 
+INTERRUPTED_EXIT = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as a shell reports a process SIGINT stopped."""
+
+
+class _CommandInterrupted(KeyboardInterrupt):
+    """A command stopped by Ctrl-C; its message is the one line that says how far it got."""
+
 
 def _cmd_figures(args: argparse.Namespace) -> int:
     from .experiments.figures import draw_analytic_figures
@@ -80,7 +87,6 @@ _CONFIG_FROM_ARGS = {"online": _online_config, "batch": _batch_config}
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .envs import resolve_env_id
-    from .runs.loop import train
 
     # validate everything before any environment is built
     cfg: Any = _CONFIG_FROM_ARGS[args.learner](args)
@@ -89,7 +95,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         from .runs.folder import clear_run_dir
 
         clear_run_dir(args.out)
-    result = train(cfg, args.out, progress=not args.quiet)
+    result = _train_until_interrupted(cfg, args.out, progress=not args.quiet)
     steps, seconds, episodes = result.total_steps, result.train_time, len(result.records)
     rate = f"{steps / max(seconds, 1e-9):.0f} steps/s"
     if args.learner == "batch":
@@ -106,6 +112,21 @@ def _cmd_train(args: argparse.Namespace) -> int:
         _print_eval(result.evaluation)
     print(f"run folder: {result.run_dir}")
     return 0
+
+
+def _train_until_interrupted(cfg: Any, out: str, progress: bool) -> Any:
+    """``train``, where Ctrl-C stops the run at its next step with a checkpoint there."""
+    from .runs.loop import train
+    from .runs.stopping import Interrupted, stop_on_sigint
+
+    try:
+        with stop_on_sigint() as stop:
+            return train(cfg, out, progress=progress, stop=stop)
+    except Interrupted as exc:
+        episodes = max(exc.episodes.values(), default=0)
+        raise _CommandInterrupted(
+            f"interrupted at episode {episodes} (checkpointed); resume with the same command"
+        ) from None
 
 
 def _print_eval(ev: object) -> None:
@@ -158,7 +179,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     from .experiments.grid import load_spec, select_runs
-    from .experiments.reproduce import reproduce
 
     spec = load_spec(args.spec)  # every run is validated before any starts
     whole = spec
@@ -168,23 +188,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
         f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
     )
-    from .experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS, DEFAULT_POPULATION
-
-    outcome = reproduce(
-        spec,
-        args.out,
-        backend=args.backend,
-        workers=args.workers,
-        address=args.address,
-        progress=not args.quiet,
-        population=args.population or DEFAULT_POPULATION,
-        checkpoint_seconds=(
-            DEFAULT_CHECKPOINT_SECONDS
-            if args.checkpoint_seconds is None
-            else args.checkpoint_seconds
-        ),
-        whole=whole,
-    )
+    outcome = _reproduce_until_interrupted(spec, whole, args)
     print(
         f"{len(outcome.done)} runs done ({len(outcome.skipped)} were already done), "
         f"{len(outcome.failed)} failed, in {outcome.wall_time:.1f} s"
@@ -194,6 +198,34 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.report:
         _report(args.out)
     return 0 if outcome.ok else 1
+
+
+def _reproduce_until_interrupted(spec: Any, whole: Any, args: argparse.Namespace) -> Any:
+    """``reproduce``, where Ctrl-C stops every running run at its next step with a
+    checkpoint there (a second Ctrl-C stops at once)."""
+    from pathlib import Path
+
+    from .experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS, DEFAULT_POPULATION, reproduce
+    from .runs.stopping import stop_on_sigint
+
+    every = args.checkpoint_seconds
+    try:
+        with stop_on_sigint() as stop:
+            outcome = reproduce(
+                spec, args.out, backend=args.backend, workers=args.workers,
+                address=args.address, progress=not args.quiet,
+                population=args.population or DEFAULT_POPULATION,
+                checkpoint_seconds=DEFAULT_CHECKPOINT_SECONDS if every is None else every,
+                whole=whole, stop=stop,
+            )  # fmt: skip
+    except KeyboardInterrupt:
+        outcome = None
+    if outcome is None or outcome.interrupted:
+        done = sum((Path(args.out) / run.key / "done.json").exists() for run in spec.runs)
+        raise _CommandInterrupted(
+            f"interrupted: {done} of {len(spec.runs)} runs done; resume with the same command"
+        )
+    return outcome
 
 
 def _report(out: str) -> None:
@@ -391,6 +423,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"pporpe {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:  # Ctrl-C: one line, never a traceback
+        line = (
+            str(exc)
+            if isinstance(exc, _CommandInterrupted)
+            else "interrupted; the work since the last checkpoint is lost; resume with the "
+            "same command"
+        )
+        print(f"pporpe {args.command}: {line}", file=sys.stderr)
+        return INTERRUPTED_EXIT
 
 
 if __name__ == "__main__":  # pragma: no cover

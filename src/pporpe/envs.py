@@ -55,6 +55,7 @@ from gymnasium import spaces
 __all__ = [
     "ALIASES",
     "BULLET_STEPS",
+    "MUJOCO_INSTALL",
     "GymnasiumWarning",
     "QuietBulletStart",
     "ReplayableEnv",
@@ -80,6 +81,20 @@ BULLET_STEPS = ("batched", "reference")
 
 BULLET_STEP_VARIABLE = "PPORPE_BULLET_STEP"
 """The environment variable that sets the default of ``make_env``'s ``bullet_step``."""
+
+MUJOCO_INSTALL = 'pip install -c constraints.txt -e ".[mujoco]"'
+"""What to install for Gymnasium's MuJoCo tasks (``HalfCheetah-v5``, ``Ant-v5``, ...): the
+one place the error of a MuJoCo task without MuJoCo takes it from."""
+
+_MUJOCO_ENTRY_POINTS = "gymnasium.envs.mujoco"
+
+
+def _missing_dependency(env_id: str, entry_point: Any, exc: Exception) -> ImportError:
+    """The one-line error of a task whose package is not installed, saying what to install."""
+    if isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS):
+        return ImportError(f"{env_id} needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
+    reason = (str(exc).strip().splitlines() or ["a package is missing"])[0]
+    return ImportError(f"{env_id} cannot be built: {reason}")
 
 
 def _aliases_text() -> str:
@@ -218,6 +233,8 @@ def make_env(
         ValueError: unknown name; a ``bullet_step`` outside :data:`BULLET_STEPS`; an
             action space that is not a ``gymnasium.spaces.Box`` or not 1-D with finite
             bounds; an observation space that is not a 1-D Box.
+        ImportError: the task's package is not installed (a MuJoCo task without MuJoCo:
+            :data:`MUJOCO_INSTALL`), saying what to install.
     """
     env_id = resolve_env_id(name)
     step = bullet_step_choice(bullet_step)
@@ -226,7 +243,10 @@ def make_env(
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
         spec = _bullet_spec(env_id, step)
-    env = _make_with_plain_warnings(spec, **kwargs)
+    try:
+        env = _make_with_plain_warnings(spec, **kwargs)
+    except gymnasium.error.DependencyNotInstalled as exc:
+        raise _missing_dependency(env_id, entry_point, exc) from None
     if hasattr(env.unwrapped, "physicsClientId"):
         env = QuietBulletStart(env)
     act_space, obs_space = env.action_space, env.observation_space

@@ -6,6 +6,7 @@ with the policy's location (no sampling).
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -98,26 +99,42 @@ def evaluate_policy(
     as MP4 files (``rl-video-episode-<i>.mp4``, one frame per step plus the reset frame)
     through Gymnasium's ``RecordVideo``, rendering with ``render_mode="rgb_array"``
     (headless for the PyBullet tasks); the returns are the same as without it. Needs
-    moviepy (``pip install "pporpe[video]"``).
+    moviepy (``pip install "pporpe[video]"``) and what the task renders with
+    (:func:`check_video_support`, before any episode); a ``video_dir`` created here is
+    removed again if the call fails and it is empty.
     """
     if not (isinstance(episodes, int) and episodes >= 1):
         raise ValueError(f"episodes must be an int >= 1; got episodes={episodes!r}")
-    if video_dir is not None:
-        if not (isinstance(video_episodes, int) and 1 <= video_episodes <= episodes):
-            raise ValueError(
-                f"video_episodes must be an int in [1, episodes={episodes}]; got {video_episodes!r}"
-            )
-        check_video_support()
-    env = make_env(env_name, seed=seed, render_mode="rgb_array" if video_dir else None)
-    if video_dir is not None:
+    if video_dir is None:
+        env = make_env(env_name, seed=seed, render_mode=None)
+        return _run_episodes(act, env, episodes, seed)
+    if not (isinstance(video_episodes, int) and 1 <= video_episodes <= episodes):
+        raise ValueError(
+            f"video_episodes must be an int in [1, episodes={episodes}]; got {video_episodes!r}"
+        )
+    check_video_support(env_name)
+    created = not Path(video_dir).exists()
+    try:
         from gymnasium.wrappers import RecordVideo
 
         env = RecordVideo(
-            env,
+            make_env(env_name, seed=seed, render_mode="rgb_array"),
             str(video_dir),
             episode_trigger=lambda i: i < video_episodes,
             disable_logger=True,
         )
+        return _run_episodes(act, env, episodes, seed)
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):  # only if empty
+                Path(video_dir).rmdir()
+        raise
+
+
+def _run_episodes(
+    act: Callable[[np.ndarray], np.ndarray], env: Any, episodes: int, seed: int
+) -> EvalResult:
+    """``episodes`` episodes of ``act`` in ``env`` (seeded once with ``seed``), then closed."""
     returns: list[float] = []
     try:
         obs, _ = env.reset(seed=seed)
@@ -135,11 +152,26 @@ def evaluate_policy(
     return summarize_returns(returns)
 
 
-def check_video_support() -> None:
-    """Raise ImportError, saying what to install, when video recording is unavailable."""
+def check_video_support(env_name: str | None = None) -> None:
+    """Raise ImportError, saying what to install, when video recording is unavailable:
+    moviepy, and with ``env_name`` what that task renders its frames with (pygame for
+    Gymnasium's classic-control tasks such as Pendulum-v1; one frame is rendered to see)."""
     import importlib.util
 
     if importlib.util.find_spec("moviepy") is None:
         raise ImportError(
             'recording video needs moviepy: pip install "pporpe[video]" (or pip install moviepy)'
         )
+    if env_name is None:
+        return
+    from gymnasium.error import DependencyNotInstalled
+
+    env = make_env(env_name, render_mode="rgb_array")
+    try:
+        env.reset(seed=0)
+        env.render()
+    except DependencyNotInstalled as exc:
+        reason = (str(exc).strip().splitlines() or ["a package is missing"])[0]
+        raise ImportError(f"recording video of {env_name} needs its renderer: {reason}") from None
+    finally:
+        env.close()

@@ -1,6 +1,12 @@
 """Where jobs run: a local process pool or a Ray cluster, one worker per job.
 
 Each job goes through :func:`run_job`, which locks its run folders while it trains them.
+
+Ctrl-C: the local workers ignore SIGINT (a terminal sends it to every process of the
+group); the parent, asked to stop (its ``stop``), sets an event that every worker's run
+loop reads after each unit of work, so each job checkpoints its runs at that step and
+reports them ``"interrupted"``; jobs not started yet are cancelled. Ray tasks are
+cancelled (their runs keep their last checkpoints).
 """
 
 from __future__ import annotations
@@ -11,8 +17,8 @@ import os
 import signal
 import sys
 import traceback
-from collections.abc import Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -20,6 +26,7 @@ from typing import Any
 from ..config import config_from_dict
 from ..io import atomic_write_text
 from ..runs.kinds import get_kind
+from ..runs.stopping import Interrupted
 from .planning import Job
 from .progress import GridProgress
 
@@ -30,6 +37,10 @@ BACKENDS = ("local", "ray")
 RAY_RETRIES = 3
 """How many times Ray runs a job again whose worker died (not for an error in the job:
 a failed run is recorded in its folder, and the job returns)."""
+
+_STOP: Any = None
+"""In a local worker: the pool's stop event (a ``multiprocessing.Event``), set by the parent
+on Ctrl-C; None elsewhere."""
 
 
 @contextlib.contextmanager
@@ -47,6 +58,13 @@ def _failure(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".splitlines()[0]
 
 
+def _done_or(path: Path, status: dict[str, Any]) -> dict[str, Any]:
+    """A run's status after its job stopped: done if it finished, else ``status``."""
+    if (path / "done.json").exists():
+        return {"run_dir": str(path), "status": "done", "score": None}
+    return {"run_dir": str(path), **status}
+
+
 def run_job(
     home: str,
     runs: list[tuple[str, dict[str, Any]]],
@@ -59,7 +77,8 @@ def run_job(
     ``runs`` holds ``(run_dir, config.json content)`` pairs; ``home`` keeps the queue's
     ``population.json``. Every run folder is locked while the job holds it. A run that
     fails alone leaves its message in ``error.txt``; if the whole job fails, every
-    unfinished run of it gets the traceback.
+    unfinished run of it gets the traceback. Stopped by the pool's stop event (Ctrl-C),
+    the job checkpoints its runs and reports the unfinished ones ``"interrupted"``.
     """
     paths = [Path(d) for d, _ in runs]
     try:
@@ -78,6 +97,7 @@ def run_job(
                 capacity=population,
                 home=home,
                 checkpoint_seconds=checkpoint_seconds if population > 1 else 0.0,
+                stop=_STOP.is_set if _STOP is not None else None,
             )
         out: list[dict[str, Any]] = []
         for d, res in zip((d for d, _ in runs), results, strict=True):
@@ -87,26 +107,29 @@ def run_job(
                 score = res.evaluation.median if res.evaluation is not None else None
                 out.append({"run_dir": d, "status": "done", "score": score})
         return out
+    except Interrupted:
+        return [_done_or(path, {"status": "interrupted"}) for path in paths]
     except Exception as exc:
         tb = traceback.format_exc()
-        failed: list[dict[str, Any]] = []
         for path in paths:
-            if (path / "done.json").exists():
-                failed.append({"run_dir": str(path), "status": "done", "score": None})
-                continue
-            with contextlib.suppress(OSError):
-                atomic_write_text(path / "error.txt", tb)
-            failed.append({"run_dir": str(path), "status": "failed", "error": _failure(exc)})
-        return failed
+            if not (path / "done.json").exists():
+                with contextlib.suppress(OSError):
+                    atomic_write_text(path / "error.txt", tb)
+        return [_done_or(path, {"status": "failed", "error": _failure(exc)}) for path in paths]
 
 
-def _worker_init() -> None:
-    """Pool initializer: die with the parent, and keep C-level chatter off the terminal.
+def _worker_init(stop: Any = None) -> None:
+    """Pool initializer: die with the parent, leave Ctrl-C to it, and keep C-level chatter
+    off the terminal.
 
-    The worker gets SIGKILL when the parent process dies (Linux). Its standard output
-    goes to /dev/null at the descriptor level (PyBullet prints from C on every
-    connection); tracebacks of failed runs are still written to their ``error.txt``.
+    The worker gets SIGKILL when the parent process dies (Linux). It ignores SIGINT: the
+    parent asks it to stop through ``stop`` (kept in :data:`_STOP`), at a safe point. Its
+    standard output goes to /dev/null at the descriptor level (PyBullet prints from C on
+    every connection); tracebacks of failed runs are still written to their ``error.txt``.
     """
+    global _STOP
+    _STOP = stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -119,30 +142,60 @@ def _worker_init() -> None:
         os.close(devnull)
 
 
+def _interrupted(job: Job) -> list[dict[str, Any]]:
+    """The statuses of a job that was cancelled before it started."""
+    return [_done_or(Path(d), {"status": "interrupted"}) for d, _ in job.runs]
+
+
 def run_local(
-    jobs: list[Job], workers: int, progress: GridProgress, checkpoint_seconds: float
+    jobs: list[Job],
+    workers: int,
+    progress: GridProgress,
+    checkpoint_seconds: float,
+    stop: Callable[[], bool] | None = None,
 ) -> list[dict[str, Any]]:
-    """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses."""
+    """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses.
+    When ``stop()`` turns True (Ctrl-C), the running jobs stop at a safe point with their
+    checkpoints and the others are cancelled: their runs are ``"interrupted"``."""
     results: list[dict[str, Any]] = []
     ctx = get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
-        pending: set[Future[list[dict[str, Any]]]] = {
-            pool.submit(run_job, j.home, j.runs, j.population, checkpoint_seconds) for j in jobs
+    event = ctx.Event()
+    pool = ProcessPoolExecutor(workers, ctx, initializer=_worker_init, initargs=(event,))
+    try:
+        futures = {
+            pool.submit(run_job, j.home, j.runs, j.population, checkpoint_seconds): j
+            for j in jobs
         }
+        pending = set(futures)
         progress.poll(min(workers, len(pending)), results)
         while pending:
             finished, pending = wait(pending, timeout=2.0, return_when=FIRST_COMPLETED)
             for fut in finished:
-                results.extend(fut.result())
+                results.extend(_interrupted(futures[fut]) if fut.cancelled() else fut.result())
+            if stop is not None and stop() and not event.is_set():
+                event.set()  # every worker's run loop stops at its next step
+                for fut in pending:
+                    fut.cancel()  # those not started yet
             progress.poll(min(workers, len(pending)), results)
+    except BaseException:  # a second Ctrl-C: no waiting for the jobs' statuses
+        event.set()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
     return results
 
 
 def run_ray(
-    jobs: list[Job], address: str | None, progress: GridProgress, checkpoint_seconds: float
+    jobs: list[Job],
+    address: str | None,
+    progress: GridProgress,
+    checkpoint_seconds: float,
+    stop: Callable[[], bool] | None = None,
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` as Ray tasks of one CPU each (on the cluster at ``address``, or a local
-    one started for the call); every job's run statuses."""
+    one started for the call); every job's run statuses. When ``stop()`` turns True
+    (Ctrl-C), the tasks left are cancelled: their runs keep their last checkpoints and are
+    ``"interrupted"``."""
     try:
         import ray
     except ImportError:
@@ -156,7 +209,8 @@ def run_ray(
         # a worker that dies (killed, out of memory, its node lost) is retried: the task
         # resumes its runs from their checkpoints, with the same records
         remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
-        refs = [remote.remote(j.home, j.runs, j.population, checkpoint_seconds) for j in jobs]
+        job_of = {remote.remote(j.home, j.runs, j.population, checkpoint_seconds): j for j in jobs}
+        refs = list(job_of)
         results: list[dict[str, Any]] = []
         total_cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         progress.poll(min(total_cpus, len(refs)), results)
@@ -164,6 +218,11 @@ def run_ray(
             ready, refs = ray.wait(refs, num_returns=1, timeout=2.0)
             for ref in ready:
                 results.extend(ray.get(ref))
+            if stop is not None and stop():
+                for ref in refs:
+                    ray.cancel(ref)
+                    results.extend(_interrupted(job_of[ref]))
+                refs = []
             progress.poll(min(total_cpus, len(refs)), results)
         return results
     finally:

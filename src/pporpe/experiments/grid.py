@@ -26,8 +26,9 @@ spec is rejected before any run starts, naming the file, the field and what is a
 from __future__ import annotations
 
 import dataclasses
+import functools
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -242,14 +243,39 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
     for i, task in enumerate(tasks):
         at = f"{where}: tasks[{i}]"
         env, budget, task_learner = _parse_task(task, at, seen_envs)
-        overrides = {**base_learner, **task_learner}
         for seed in seeds:
             for method in methods:
-                cfg = kind.grid_config(
-                    env, method, seed, budget, common, overrides, f"{at}.learner"
-                )
+                build = functools.partial(kind.grid_config, env, method, seed, budget, common)
+                cfg = _run_config(build, base_learner, task_learner, where, at)
                 runs.append(RunSpec(method, env, seed, cfg))
     return GridSpec(name=name, runs=tuple(runs), source=where)
+
+
+def _run_config(
+    build: Callable[[dict[str, Any], str], Any],
+    base: dict[str, Any],
+    own: dict[str, Any],
+    spec: str,
+    at: str,
+) -> Any:
+    """One run's configuration, ``build(learner settings, where)``, from the spec's
+    ``[learner]`` table ``base`` and its task's ``own``. An error names the table that holds
+    the bad setting: the task's (``tasks[i].learner``), or the spec's (``learner``) when the
+    run fails with the spec's table alone and not without it."""
+    try:
+        return build({**base, **own}, f"{at}.learner")
+    except ValueError:
+        if base and not _fails(build, {}, at):
+            build(base, f"{spec}: learner")  # raises, naming the spec's table: the fault
+        raise
+
+
+def _fails(build: Callable[[dict[str, Any], str], Any], learner: dict[str, Any], at: str) -> bool:
+    try:
+        build(learner, at)
+    except ValueError:
+        return True
+    return False
 
 
 def load_spec(path: str | Path) -> GridSpec:

@@ -143,7 +143,7 @@ class GridProgress:
         if self.bar is None:
             return
         done = sum((r / "done.json").exists() for r in self.runs)
-        self.failed = sum(res["status"] != "done" for res in results)
+        self.failed = sum(res["status"] == "failed" for res in results)
         self.bar.n = self.initial + done + self.failed
         if self.episode_runs and time.perf_counter() - self.t_counted >= self.COUNT_EVERY_S:
             self.episodes_text = self.count_episodes()

@@ -20,14 +20,16 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_write_json
+from ..envs import make_env
+from ..runs.folder import CHECKPOINT, check_checkpoint
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
-from .merge import merged_grid_summary
+from .merge import merged_grid_summary, write_grid_summary, write_status
 from .planning import Job, plan_jobs
 from .progress import GridProgress
 
@@ -56,11 +58,13 @@ class GridOutcome:
     """Keys that were already finished when this call started."""
     wall_time: float
     """Seconds this call took."""
+    interrupted: list[str] = field(default_factory=list)
+    """Keys of the runs stopped by ``stop`` (Ctrl-C), each at its last checkpoint."""
 
     @property
     def ok(self) -> bool:
         """Whether every run finished."""
-        return not self.failed
+        return not self.failed and not self.interrupted
 
 
 def _is_count(x: Any) -> bool:
@@ -100,17 +104,37 @@ def _split_finished(spec: GridSpec, out_dir: Path) -> tuple[list[str], list[tupl
     return skipped, todo
 
 
+def _check_tasks(source: str, cfgs: list[Any]) -> None:
+    """Build the task of every run still to train, once each, so that a task the learners
+    cannot use (discrete actions, a missing package) is refused before any folder is
+    written, naming the spec."""
+    for env in dict.fromkeys(cfg.env for cfg in cfgs):
+        try:
+            make_env(env).close()
+        except ValueError as exc:
+            raise ValueError(f"{source}: task {env!r}: {exc}") from None
+
+
+def _check_checkpoints(jobs: list[Job]) -> None:
+    """Refuse, before any work, a checkpoint of the jobs (a run's own or a population's)
+    that would run code when read (:func:`~pporpe.runs.folder.check_checkpoint`)."""
+    for job in jobs:
+        for folder in dict.fromkeys([job.home, *(d for d, _ in job.runs)]):
+            if (path := Path(folder) / CHECKPOINT).is_file():
+                check_checkpoint(path)
+
+
 def _run_jobs(
     jobs: list[Job], backend: str, workers: int, address: str | None,
-    bar: GridProgress, checkpoint_seconds: float,
+    bar: GridProgress, checkpoint_seconds: float, stop: Callable[[], bool] | None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """Every job's run statuses, from the chosen backend; the bar is closed after."""
     try:
         if not jobs:
             return []
         if backend == "local":
-            return run_local(jobs, min(workers, len(jobs)), bar, checkpoint_seconds)
-        return run_ray(jobs, address, bar, checkpoint_seconds)
+            return run_local(jobs, min(workers, len(jobs)), bar, checkpoint_seconds, stop)
+        return run_ray(jobs, address, bar, checkpoint_seconds, stop)
     finally:
         bar.close()
 
@@ -122,12 +146,16 @@ def _outcome(
     key_of = {str(out_dir / run.key): run.key for run in spec.runs}
     done = list(skipped)
     failed: dict[str, str] = {}
+    interrupted: list[str] = []
     for res in results:
+        key = key_of[res["run_dir"]]
         if res["status"] == "done":
-            done.append(key_of[res["run_dir"]])
+            done.append(key)
+        elif res["status"] == "interrupted":
+            interrupted.append(key)
         else:
-            failed[key_of[res["run_dir"]]] = res["error"]
-    return GridOutcome(done, failed, skipped, time.perf_counter() - t0)
+            failed[key] = res["error"]
+    return GridOutcome(done, failed, skipped, time.perf_counter() - t0, interrupted)
 
 
 def reproduce(
@@ -140,6 +168,7 @@ def reproduce(
     population: int = DEFAULT_POPULATION,
     checkpoint_seconds: float = DEFAULT_CHECKPOINT_SECONDS,
     whole: GridSpec | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> GridOutcome:
     """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome.
 
@@ -148,29 +177,34 @@ def reproduce(
 
     Online runs of one task are trained ``population`` at a time by one worker
     (:func:`~.planning.plan_jobs`); their checkpoints are written at most every
-    ``checkpoint_seconds``. ``status.json`` in ``out`` records the outcome.
+    ``checkpoint_seconds``. ``status.json`` in ``out`` counts the runs of the whole grid
+    (:mod:`.merge`); a call that trains nothing leaves it and ``grid.json`` as they are.
+
+    ``stop`` is asked every few seconds while jobs run; when it turns True (``pporpe
+    reproduce`` passes Ctrl-C's request), every running run is checkpointed at its next
+    step and the call returns with those runs, and the ones not started, ``interrupted``.
     """
     _check_arguments(backend, workers, address, population, checkpoint_seconds)
     out_dir = Path(out).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    listed = spec if whole is None else whole  # a chunk lists the whole grid
-    atomic_write_json(out_dir / "grid.json", merged_grid_summary(out_dir / "grid.json", listed))
-
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"the results folder {out} is an existing file; choose another --out")
     t0 = time.perf_counter()
     skipped, todo = _split_finished(spec, out_dir)
+    _check_tasks(spec.source, [cfg for _, cfg in todo])
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
+    _check_checkpoints(jobs)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot create the results folder {out}: {exc.strerror}") from None
+    listed = spec if whole is None else whole  # a chunk lists the whole grid
+    listing_changed = write_grid_summary(out_dir, listed)
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
-    results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds)
+    results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds, stop)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
-    status = {
-        "done": sorted(outcome.done),
-        "failed": outcome.failed,
-        "skipped": sorted(skipped),
-        "wall_time_s": outcome.wall_time,
-        "backend": backend,
-    }
-    atomic_write_json(out_dir / "status.json", status)
+    seconds = outcome.wall_time if jobs else 0.0
+    write_status(out_dir, outcome.failed, seconds, backend, bool(jobs) or listing_changed)
     return outcome

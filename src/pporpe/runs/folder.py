@@ -16,6 +16,7 @@ run: :mod:`pporpe.runs.migrate` upgrades what they hold.
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -29,11 +30,13 @@ from .migrate import upgrade_config
 __all__ = [
     "CHECKPOINT",
     "RUN_FILES",
+    "check_checkpoint",
     "clear_run_dir",
     "config_json",
     "load_checkpoint",
     "open_run_dir",
     "read_config",
+    "same_run_config",
     "save_checkpoint",
 ]
 
@@ -54,6 +57,13 @@ def _parsed(data: dict[str, Any]) -> tuple[str, Any] | None:
         return kind.name, config_from_dict(kind.config_type, body)
     except (KeyError, ValueError):
         return None
+
+
+def same_run_config(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two ``config.json`` contents are the same run: equal as parsed settings, so
+    a field added by a later pporpe version, at the value the run ran with, is no change."""
+    stored = _parsed(a)
+    return stored is not None and stored == _parsed(b)
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -111,8 +121,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
         atomic_write_json(path, config)
     else:
         saved = _read_json(path)
-        stored = _parsed(saved)
-        if stored is None or stored != _parsed(config):
+        if not same_run_config(saved, config):
             differ = _differences(upgrade_config(saved), upgrade_config(config))
             raise ValueError(
                 f"{run} holds a run with a different config (differing: "
@@ -154,19 +163,88 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         tmp.write_bytes(buf.getbuffer())
 
 
+def _allowed_globals() -> list[Any]:
+    """What a pporpe checkpoint holds besides tensors and plain values (dicts, lists,
+    numbers, strings, None), for ``torch.load(weights_only=True)``: numpy arrays and scalars
+    of numbers and their dtypes (a batch run's observation statistics, an online run's last
+    action and episode replay record). Not numpy's object arrays, nor anything that runs
+    code. Checkpoints written under numpy 1.x spell numpy's functions ``numpy.core``."""
+    import numpy as np
+
+    reconstruct = np.zeros(1).__reduce__()[0]  # numpy._core.multiarray._reconstruct
+    scalar = np.float64(0.0).__reduce__()[0]  # numpy._core.multiarray.scalar
+    dtypes = dict.fromkeys(type(np.dtype(code)) for code in "?bBhHiIlLqQefdgFDG")
+    return [
+        bytes,  # an empty array's data: protocol 2 pickles b"" as bytes()
+        np.ndarray, np.dtype, reconstruct, scalar, *dtypes,
+        (reconstruct, "numpy.core.multiarray._reconstruct"),
+        (scalar, "numpy.core.multiarray.scalar"),
+    ]  # fmt: skip
+
+
+_TORCH_BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation")
+"""The lines of torch's refusal of a global that are about torch, not about the file."""
+_CODE_REFUSALS = ("GLOBAL", "Can only build", "Can only create new object")
+"""What ``torch.load(weights_only=True)`` says when a file would import or build more than
+data (other refusals are of a torn or foreign file)."""
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    reason = [ln for ln in lines if not ln.startswith(_TORCH_BOILERPLATE)] or lines or [""]
+    return f"{type(exc).__name__}: {reason[0][:200]}"
+
+
+def _unsafe(path: Path, what: str) -> ValueError:
+    return ValueError(
+        f"{path} is not a safe checkpoint: {what}, and a pporpe checkpoint holds only data; "
+        "it was not opened (nothing in it ran). Delete it if you did not write it (the run "
+        "then starts over without it)"
+    )
+
+
+def check_checkpoint(path: str | Path) -> None:
+    """Refuse a checkpoint that would import or call anything besides tensors, plain values
+    and numpy arrays (:func:`_allowed_globals`), reading its pickle without running it.
+
+    Raises ``ValueError`` naming the file and what it would call (a checkpoint that is not
+    a readable torch file at all is left to :func:`load_checkpoint`)."""
+    path = Path(path)
+    try:
+        with torch.serialization.safe_globals(_allowed_globals()):
+            foreign = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # not a zip checkpoint: torch.load(weights_only=True) refuses code
+        return
+    if foreign:
+        raise _unsafe(path, f"it would call {', '.join(sorted(foreign))}")
+
+
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
-    """The checkpoint of a run folder (``ValueError`` if it has none or it is corrupt; the
-    file is left as it is)."""
+    """The checkpoint of a run folder, read with ``torch.load(weights_only=True)``: tensors,
+    plain values and numpy arrays only, never code (:func:`check_checkpoint`).
+
+    ``ValueError`` if it has none, if it is corrupt, or if it would run code; the file is
+    left as it is."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder with a checkpoint ({CHECKPOINT})")
+    check_checkpoint(path)
     try:
-        state = torch.load(path, weights_only=False)
-    except Exception as exc:  # a torn or foreign file: pickle, zip or EOF errors
-        raise ValueError(
-            f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
-            "it was not changed. Restore it from a copy, or use --force to start the run over"
-        ) from None
+        with torch.serialization.safe_globals(_allowed_globals()):
+            state = torch.load(path, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if any(word in str(exc) for word in _CODE_REFUSALS):  # code, in a pre-zip file
+            raise _unsafe(path, f"torch refused it ({_first_line(exc)})") from None
+        raise _unreadable(path, exc) from None
+    except Exception as exc:  # a torn or foreign file: zip or EOF errors
+        raise _unreadable(path, exc) from None
     if not isinstance(state, dict) or not ("records" in state or "members" in state):
         raise ValueError(f"{path} is not a pporpe checkpoint; restore it or use --force")
     return state
+
+
+def _unreadable(path: Path, exc: BaseException) -> ValueError:
+    return ValueError(
+        f"{path} cannot be read ({_first_line(exc)}); "
+        "it was not changed. Restore it from a copy, or use --force to start the run over"
+    )

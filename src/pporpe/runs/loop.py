@@ -44,11 +44,19 @@ from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
-from .folder import CHECKPOINT, config_json, load_checkpoint, open_run_dir, read_config
+from .folder import (
+    CHECKPOINT,
+    check_checkpoint,
+    config_json,
+    load_checkpoint,
+    open_run_dir,
+    read_config,
+)
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
 from .logger import EpisodeRecord, RunLogger, read_records
 from .population_checkpoint import Packing, PopulationCheckpoint
+from .stopping import Interrupted
 
 __all__ = ["NonFiniteError", "RunResult", "load_policy", "run_queue", "train"]
 
@@ -191,6 +199,7 @@ class _Hooks:
     on_episode: Callable[[EpisodeRecord], None] | None = None
     on_chunk: OnChunk | None = None
     checkpoint_seconds: float = 0.0
+    stop: Callable[[], bool] | None = None
 
 
 class _Queue:
@@ -387,8 +396,16 @@ class _Queue:
         if changed:
             self.write_packing()
 
+    def interrupt(self) -> None:
+        """Stop on request, between two units of work: every busy run's checkpoint at this
+        step, then :class:`~pporpe.runs.stopping.Interrupted` (how far each run got)."""
+        self.checkpoint()
+        self.write_packing()
+        raise Interrupted({book.run: len(book.records) for book in self.books.values()})
+
     def run(self) -> None:
-        """Fill the slots, then step until every run has finished or failed."""
+        """Fill the slots, then step until every run has finished or failed (or the
+        caller's ``stop`` asks to stop: :meth:`interrupt`)."""
         try:
             for slot, assigned in enumerate(list(self.slots)):
                 if assigned is not None:
@@ -398,6 +415,8 @@ class _Queue:
             self.write_packing()
             while self.books:
                 self.step()
+                if self.books and self.hooks.stop is not None and self.hooks.stop():
+                    self.interrupt()
         finally:
             for book in self.books.values():
                 book.close()
@@ -419,6 +438,17 @@ def _pending_runs(
     return pending
 
 
+def _check_checkpoints(dirs: list[Path], population: PopulationCheckpoint | None) -> None:
+    """Refuse, before any work, a checkpoint that would run code when read
+    (:func:`~pporpe.runs.folder.check_checkpoint`): the runs' own and the population's."""
+    files = [d / CHECKPOINT for d in dirs]
+    if population is not None:
+        files.append(population.file)
+    for path in files:
+        if path.is_file():
+            check_checkpoint(path)
+
+
 def run_queue(
     runs: Sequence[tuple[Any, str | Path]],
     capacity: int = 1,
@@ -428,6 +458,7 @@ def run_queue(
     on_chunk: OnChunk | None = None,
     checkpoint_seconds: float = 0.0,
     num_threads: int = 1,
+    stop: Callable[[], bool] | None = None,
 ) -> list[RunResult]:
     """Train every ``(config, run_dir)`` of ``runs`` (one learner kind, one task and network
     shape) through one trainer with up to ``capacity`` slots, refilling a slot when its run
@@ -441,7 +472,10 @@ def run_queue(
     the same numbers), the caller's setting restored when the call returns. (One setting
     for every call: a kernel compiled by ``torch.compile`` under one thread count crashed
     when run under another.) Exceptions other than a run's own failure stop the queue (each
-    run keeps its last checkpoint).
+    run keeps its last checkpoint). ``stop`` is asked after every unit of work; when it
+    returns True, every busy run is checkpointed at that step and
+    :class:`~pporpe.runs.stopping.Interrupted` is raised (``pporpe train`` and grids pass
+    :func:`~pporpe.runs.stopping.stop_on_sigint`'s request: Ctrl-C).
     """
     if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
         raise ValueError(f"num_threads must be an int >= 1; got num_threads={num_threads!r}")
@@ -464,7 +498,8 @@ def run_queue(
         population = (
             PopulationCheckpoint(Path(home), dirs) if home is not None and capacity > 1 else None
         )
-        hooks = _Hooks(progress, on_episode, on_chunk, checkpoint_seconds)
+        _check_checkpoints([dirs[i] for i in pending], population)
+        hooks = _Hooks(progress, on_episode, on_chunk, checkpoint_seconds, stop)
         slots = max(1, min(capacity, len(pending)))
         with _torch_threads(num_threads):
             queue = _Queue(kind, cfgs, dirs, pending, slots, population, hooks, results)
@@ -490,11 +525,13 @@ def train(
     on_episode: Callable[[EpisodeRecord], None] | None = None,
     on_chunk: OnChunk | None = None,
     num_threads: int = 1,
+    stop: Callable[[], bool] | None = None,
 ) -> RunResult:
     """Train one run of any learner kind as configured, writing everything into
     ``run_dir``; resumes from its checkpoint when one exists for the same config.
-    ``num_threads``: torch's threads while training, the caller's setting restored after
-    (see :func:`run_queue`).
+    ``num_threads``: torch's threads while training, the caller's setting restored after;
+    ``stop``: asked after every unit of work, True checkpoints the run and raises
+    :class:`~pporpe.runs.stopping.Interrupted` (see :func:`run_queue`).
 
     Raises :class:`NonFiniteError` if the run failed on a non-finite value (its last good
     checkpoint is kept).
@@ -505,6 +542,7 @@ def train(
         on_episode=on_episode,
         on_chunk=on_chunk,
         num_threads=num_threads,
+        stop=stop,
     )
     if result.error is not None:
         raise NonFiniteError(result.error)

@@ -1,0 +1,224 @@
+"""Checkpoints are read as data, never as code: a ``checkpoint.pt`` whose pickle would call
+a function (here ``os.system``, creating a marker file) is refused by every command that
+reads checkpoints, with one line naming the file, and the function never runs. Every
+checkpoint pporpe writes, and those of earlier versions, still load."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+import pporpe
+from pporpe.experiments.grid import load_spec
+from pporpe.experiments.planning import plan_jobs
+from pporpe.runs.folder import (
+    CHECKPOINT,
+    config_json,
+    load_checkpoint,
+    open_run_dir,
+    save_checkpoint,
+)
+from pporpe.runs.kinds import kind_of
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+class _Payload:
+    """Unpickled by full pickle, this runs ``touch MARKER``."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[Any, tuple[str]]:
+        return os.system, (f"touch {self.marker}",)
+
+
+def plant(path: Path, marker: Path, legacy: bool = False) -> None:
+    """A checkpoint that looks like pporpe's and runs ``touch marker`` when unpickled."""
+    state = {"records": [], "wall_time": 0.0, "learner": _Payload(marker)}
+    torch.save(state, path, _use_new_zipfile_serialization=not legacy)
+
+
+def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "pporpe.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=cwd,
+    )
+
+
+def one_error_line(proc: subprocess.CompletedProcess[str], command: str) -> str:
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"pporpe {command}: error: ")
+    return lines[0]
+
+
+def listing(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_the_planted_checkpoint_runs_its_code_when_fully_unpickled(tmp_path: Path) -> None:
+    """The control: the payload is live (what ``weights_only=False`` used to do)."""
+    marker = tmp_path / "marker"
+    plant(tmp_path / CHECKPOINT, marker)
+    torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    assert marker.exists()
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["zip", "legacy-format"])
+def test_load_checkpoint_and_load_policy_refuse_code(tmp_path: Path, legacy: bool) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(FIXTURES / "run_v0_1_online", run)
+    marker = tmp_path / "marker"
+    plant(run / CHECKPOINT, marker, legacy)
+    for read in (load_checkpoint, pporpe.load_policy):
+        with pytest.raises(ValueError, match="is not a safe checkpoint") as info:
+            read(run)
+        assert str(run / CHECKPOINT) in str(info.value) and "\n" not in str(info.value)
+        assert "posix.system" in str(info.value)
+    assert not marker.exists()
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A short online run, unfinished (its done.json removed) so that train resumes it."""
+    run = tmp_path_factory.mktemp("trained") / "run"
+    proc = cli(*TRAIN_ARGS, "--out", str(run))
+    assert proc.returncode == 0, proc.stderr
+    (run / "done.json").unlink()
+    return run
+
+
+TRAIN_ARGS = ("train", "--env", "pendulum", "--episodes", "3", "--eval-episodes", "0", "--quiet")
+
+
+@pytest.mark.parametrize("command", ["evaluate", "train"])
+def test_evaluate_and_resumed_train_refuse_code(
+    tmp_path: Path, trained_run: Path, command: str
+) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    marker = tmp_path / "marker"
+    plant(run / CHECKPOINT, marker)
+    before = listing(run)
+    if command == "evaluate":
+        proc = cli("evaluate", str(run), "--episodes", "2")
+    else:
+        proc = cli(*TRAIN_ARGS, "--out", str(run))
+    line = one_error_line(proc, command)
+    assert proc.returncode == 2
+    assert f"{run / CHECKPOINT} is not a safe checkpoint" in line
+    assert not marker.exists()
+    assert listing(run) == before  # nothing written: no evaluation.json, no records
+
+
+GRID = """
+name = "tiny"
+methods = ["ppo", "rpe"]
+seeds = [0, 1]
+eval_episodes = 1
+checkpoint_every = 1
+
+[learner]
+layers = 1
+units = 8
+
+[[tasks]]
+env = "pendulum"
+episodes = 3
+"""
+
+
+@pytest.mark.parametrize("where", ["run", "population"])
+def test_a_grid_refuses_code_before_any_work(tmp_path: Path, where: str) -> None:
+    """A run folder's checkpoint, or a population's, that would run code stops the grid
+    before anything is trained or written."""
+    spec_path = tmp_path / "tiny.toml"
+    spec_path.write_text(GRID)
+    spec = load_spec(spec_path)
+    out = tmp_path / "out"
+    todo = [(out / run.key, run.config) for run in spec.runs]
+    for run_dir, cfg in todo:
+        open_run_dir(run_dir, config_json(kind_of(cfg), cfg))
+    (job,) = plan_jobs(todo, out.resolve(), 4, 1)
+    target = Path(job.home if where == "population" else job.runs[1][0]) / CHECKPOINT
+    target.parent.mkdir(parents=True, exist_ok=True)
+    marker = tmp_path / "marker"
+    plant(target, marker)
+    before = listing(out)
+    args = ("--out", str(out), "--workers", "1", "--population", "4", "--quiet")
+    proc = cli("reproduce", str(spec_path), *args)
+    line = one_error_line(proc, "reproduce")
+    assert proc.returncode == 2
+    assert f"{target} is not a safe checkpoint" in line
+    assert not marker.exists()
+    assert listing(out) == before  # no grid.json, status.json, .lock or records
+
+
+DATA = {
+    "empty array": np.zeros((0,), np.float32),  # an episode's replay before its first action
+    "empty 2-d": np.zeros((0, 3)),
+    "array": np.arange(6, dtype=np.int64)[::2],
+    "fortran": np.asfortranarray(np.ones((2, 2))),
+    "0-d": np.array(2.5),
+    "bool array": np.zeros(3, np.bool_),
+    "complex": np.ones(2, np.complex64),
+    "numpy scalars": [np.float64(0.5), np.float32(1.5), np.int64(3), np.bool_(True)],
+    "bit generator": np.random.default_rng(0).bit_generator.state,
+    "torch rng": torch.get_rng_state(),
+    "plain": [b"", b"abc", (1, 2), 10**40, None, float("inf"), "text"],
+}
+
+
+@pytest.mark.parametrize("name", list(DATA))
+def test_the_data_checkpoints_hold_loads_as_it_was_saved(tmp_path: Path, name: str) -> None:
+    """What run states hold (numpy arrays of every shape, numpy scalars, random states)
+    loads back equal and of the same types."""
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "value": DATA[name]})
+    got = load_checkpoint(tmp_path)["value"]
+    want = DATA[name]
+    assert type(got) is type(want) and repr(got) == repr(want)
+    if isinstance(want, np.ndarray):
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_numpy_object_arrays_are_refused(tmp_path: Path) -> None:
+    """Object arrays could hold anything; no run state has one."""
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "value": np.array([1, "a"], object)})
+    with pytest.raises(ValueError, match="is not a safe checkpoint"):
+        load_checkpoint(tmp_path)
+
+
+def test_checkpoints_written_under_numpy_1_still_load(tmp_path: Path) -> None:
+    """numpy 1.x pickles its arrays' functions as ``numpy.core.multiarray``; a batch run's
+    checkpoint (observation statistics as numpy arrays) so written loads the same."""
+    run = tmp_path / "run"
+    shutil.copytree(FIXTURES / "run_v0_1_batch", run)
+    path = run / CHECKPOINT
+    with zipfile.ZipFile(path) as src:
+        entries = [(info, src.read(info)) for info in src.infolist()]
+    renamed = False
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as dst:
+        for info, data in entries:
+            if info.filename.endswith("data.pkl"):
+                renamed = b"numpy._core.multiarray" in data
+                data = data.replace(b"numpy._core.multiarray", b"numpy.core.multiarray")
+            dst.writestr(info, data)
+    assert renamed
+    got = load_checkpoint(run)
+    want = load_checkpoint(FIXTURES / "run_v0_1_batch")
+    rms, ref = got["learner"]["normalizer"]["obs_rms"], want["learner"]["normalizer"]["obs_rms"]
+    assert isinstance(rms["mean"], np.ndarray) and np.array_equal(rms["mean"], ref["mean"])
+    assert pporpe.load_policy(run).config == pporpe.load_policy(FIXTURES / "run_v0_1_batch").config
