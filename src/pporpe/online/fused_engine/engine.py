@@ -1,117 +1,45 @@
 """The Python side of the fused engine: numpy views of a population's buffers, the
-per-member constants as matrices, and the calls of the kernels of :mod:`.fused`."""
+per-member constants as matrices, and the calls of the kernels of :mod:`.kernels`."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..nn.batched import NetLayout
-from . import fused
-from .config import OnlineConfig
+from ...nn.batched import NetLayout
+from ..config import OnlineConfig
+from .kernels.inputs import (
+    ACTIVATIONS,
+    C_NAMES,
+    F_NAMES,
+    G_ACT,
+    G_ACT_DIM,
+    G_HEAD,
+    G_LAYERS,
+    G_LN,
+    G_OBS,
+    G_OUT_B,
+    G_OUT_W,
+    G_RAW,
+    G_UNITS,
+    HEADS,
+    METHOD_CODES,
+)
+from .kernels.step import fused_begin, fused_forward, fused_step
 
 if TYPE_CHECKING:
-    from .population import PopulationLearner
+    from ..population import PopulationLearner
 
-__all__ = ["FusedEngine", "compile_kernels", "segment_ranges", "warm_up"]
+__all__ = ["FusedEngine", "segment_ranges"]
 
 
 def _np(t: Tensor, *shape: int) -> np.ndarray:
     """A numpy view (shared memory) of a contiguous CPU tensor, reshaped."""
     arr = t.numpy()
     return arr.reshape(shape) if shape else arr
-
-
-_KERNELS = (fused.fused_begin, fused.fused_step, fused.fused_forward)
-"""The kernels Python calls; each carries the code of every function it calls."""
-
-
-class _Loaded:
-    """Whether this process has loaded the kernels: :func:`warm_up`."""
-
-    done = False
-
-
-def _run_kernels() -> None:
-    """A one-member population of the smallest shape through a first action, a step and
-    both forwards: every kernel called once. The kernels' types do not depend on the
-    population's sizes, so this covers every population."""
-    from .population import PopulationLearner
-
-    pop = PopulationLearner(
-        1, -np.ones(1), np.ones(1), [OnlineConfig(layers=1, units=2)], [0], engine="fused"
-    )
-    obs, no = np.zeros((1, 1)), np.zeros(1, dtype=bool)
-    pop.begin_episode([0], obs)
-    pop.step(np.zeros(1), obs, no, no)
-    pop.act_deterministic(obs)
-    pop.value(obs)
-
-
-def compile_kernels() -> None:
-    """Compile every kernel into numba's disk cache (the body of :func:`warm_up`'s
-    subprocess)."""
-    _Loaded.done = True
-    _run_kernels()
-
-
-def _in_cache() -> bool:
-    """Whether numba's disk cache holds every kernel for today's source (its index is
-    empty where the source changed). numba has no public call for this; its version is
-    pinned in constraints.txt."""
-    for kernel in _KERNELS:
-        index = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
-        if index is None or not index._load_index():
-            return False
-    return True
-
-
-def warm_up() -> None:
-    """Load every kernel of :mod:`.fused` from numba's disk cache (:mod:`.fused`'s
-    docstring says where), once per process; if it is not there, compile it first in a
-    subprocess. :class:`~pporpe.online.population.PopulationLearner` calls this when it
-    is built with the fused engine, so the compile falls before a run's clock starts.
-
-    Why a subprocess: a process that compiled the kernels computes float rounding
-    differently from one that loaded them (measured with numba 0.68.1 on this project's
-    machine, with the swish activation only: the same cached code, loaded in both), so the
-    numbers of a run would depend on whether its process found the cache. A process that
-    trains only ever loads; where the cache cannot be written, every process compiles,
-    and they agree with one another. Tested in tests/test_fused.py.
-    """
-    if _Loaded.done:
-        return
-    _Loaded.done = True  # the one-member population below must not warm up again
-    try:
-        if not _in_cache():
-            _compile_in_subprocess()
-        _run_kernels()  # loads them (compiles them where the cache cannot be written)
-    except BaseException:
-        _Loaded.done = False
-        raise
-
-
-def _compile_in_subprocess() -> None:
-    """:func:`compile_kernels` in a fresh interpreter that finds pporpe where this one did
-    (its ``sys.path``); if that fails, a warning, and the kernels compile in this process."""
-    code = "from pporpe.online.fused_engine import compile_kernels; compile_kernels()"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
-    if done.returncode != 0:
-        warnings.warn(
-            "compiling the fused kernels in a subprocess failed, so this process compiles "
-            "them, and its float rounding may differ from a process that loads them from "
-            f"numba's cache:\n{done.stderr[-2000:]}",
-            RuntimeWarning,
-            stacklevel=3,
-        )
 
 
 def segment_ranges(lay: NetLayout) -> np.ndarray:
@@ -139,7 +67,7 @@ def segment_ranges(lay: NetLayout) -> np.ndarray:
 
 
 class FusedEngine:
-    """Numpy views of ``pop``'s buffers and the layout, for :func:`fused.fused_step`."""
+    """Numpy views of ``pop``'s buffers and the layout, for :func:`~.kernels.step.fused_step`."""
 
     def __init__(self, pop: PopulationLearner) -> None:
         lay, K = pop.lay, pop.K
@@ -154,11 +82,11 @@ class FusedEngine:
             dtype=np.int64,
         )
         geo = [0] * 10
-        geo[fused.G_OBS], geo[fused.G_UNITS], geo[fused.G_RAW] = lay.obs_dim, units, lay.raw_dim
-        geo[fused.G_OUT_W], geo[fused.G_OUT_B] = lay.out_w.offset, lay.out_b.offset
-        geo[fused.G_LN], geo[fused.G_ACT] = int(lay.layer_norm), fused.ACTIVATIONS[pop.activation]
-        geo[fused.G_HEAD] = fused.HEADS[pop.shape_config.policy]
-        geo[fused.G_ACT_DIM], geo[fused.G_LAYERS] = pop.act_dim, lay.layers
+        geo[G_OBS], geo[G_UNITS], geo[G_RAW] = lay.obs_dim, units, lay.raw_dim
+        geo[G_OUT_W], geo[G_OUT_B] = lay.out_w.offset, lay.out_b.offset
+        geo[G_LN], geo[G_ACT] = int(lay.layer_norm), ACTIVATIONS[pop.activation]
+        geo[G_HEAD] = HEADS[pop.shape_config.policy]
+        geo[G_ACT_DIM], geo[G_LAYERS] = pop.act_dim, lay.layers
         self.geo = np.array(geo, dtype=np.int64)
         self.seg = segment_ranges(lay)
         self.hf = np.array([pop.head.min_scale, float(lay.n_real[1])])
@@ -177,8 +105,8 @@ class FusedEngine:
             _np(pend.obs), _np(pend.u), _np(pend.logp_b), _np(pend.value_b), _np(pend.raw_b),
             pend.waiting,
         )  # fmt: skip
-        self.cf = np.zeros((K, len(fused.C_NAMES)))
-        self.fl = np.zeros((K, len(fused.F_NAMES)), dtype=np.int64)
+        self.cf = np.zeros((K, len(C_NAMES)))
+        self.fl = np.zeros((K, len(F_NAMES)), dtype=np.int64)
         width = max(lay.obs_dim, units)
         max_seg = int((self.seg[:, 1] - self.seg[:, 0]).max())
         self.scratch = (
@@ -199,10 +127,10 @@ class FusedEngine:
         co = pop.consts
         surrogate = {"eps": cfg.eps, "beta": cfg.beta, "eta": cfg.eta}
         self.cf[k] = [surrogate[n] if n in surrogate else float(getattr(co, n)[k])
-                      for n in fused.C_NAMES]  # fmt: skip
-        method = fused.METHOD_CODES[(cfg.method, cfg.rpe_form)]
+                      for n in C_NAMES]  # fmt: skip
+        method = METHOD_CODES[(cfg.method, cfg.rpe_form)]
         self.fl[k] = [method if n == "method" else int(bool(getattr(co, n)[k]))
-                      for n in fused.F_NAMES]  # fmt: skip
+                      for n in F_NAMES]  # fmt: skip
 
     def step(
         self,
@@ -225,7 +153,7 @@ class FusedEngine:
             self._no_forced if forced_u is None else np.ascontiguousarray(forced_u, np.float32),
             forced_u is not None,
         )
-        fused.fused_step(
+        fused_step(
             self.P, self.opt, self.sc, self.pend, inp, self.cf, self.fl, self.geo, self.lay,
             self.seg, self.hf, self.bounds, (self.stats, self.actions), self.scratch,
         )  # fmt: skip
@@ -240,7 +168,7 @@ class FusedEngine:
         forced = (
             self._no_forced[:n] if forced_u is None else np.ascontiguousarray(forced_u, np.float32)
         )
-        fused.fused_begin(
+        fused_begin(
             self.P, np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(obs, np.float32),
             points, forced, forced_u is not None, self.geo, self.lay, self.hf, self.bounds,
             self.pend, actions, self.scratch,
@@ -251,5 +179,5 @@ class FusedEngine:
         """Outputs ``[K, n_out]`` of net ``kind`` (0 policy, 1 value) at ``obs [K, obs]``."""
         out = np.zeros((self.P.shape[1], n_out), np.float32)
         x = np.ascontiguousarray(obs, np.float32)
-        fused.fused_forward(self.P, kind, x, self.geo, self.lay, out, self.scratch)
+        fused_forward(self.P, kind, x, self.geo, self.lay, out, self.scratch)
         return out
