@@ -18,11 +18,11 @@ from .config import (
     TrainConfig,
 )
 from .learner import OnlineLearner
-from .optim import TDAmsProp
 from .population import PopulationLearner
 from .stats import StepStats
-from .traces import AdaptiveTraces
-from .tsoft import TSoftUpdate
+from .torch_engine.optim import TDAmsProp
+from .torch_engine.traces import AdaptiveTraces
+from .torch_engine.tsoft import TSoftUpdate
 
 __all__ = [
     "AUTHOR_CHOICES",

@@ -55,7 +55,7 @@ from .config import ENGINES, OnlineConfig
 from .noise import NoiseBank, polar_normal, polar_student_t
 from .state import MemberConstants, PopulationState
 from .stats import StepStats
-from .update import (
+from .torch_engine.update import (
     opt_scalars,
     trace_scalars,
     tsoft_rates,
