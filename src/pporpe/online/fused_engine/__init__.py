@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 
 from ..config import OnlineConfig
+from ..engine import PopulationParts
 from .engine import FusedEngine, segment_ranges
 from .kernels.step import fused_begin, fused_forward, fused_step
 
@@ -32,19 +33,22 @@ class _Loaded:
 
 
 def _run_kernels() -> None:
-    """A one-member population of the smallest shape through a first action, a step and
-    both forwards: every kernel called once. The kernels' types do not depend on the
-    population's sizes, so this covers every population."""
-    from ..population import PopulationLearner
-
-    pop = PopulationLearner(
-        1, -np.ones(1), np.ones(1), [OnlineConfig(layers=1, units=2)], [0], engine="fused"
-    )
+    """The smallest population, set up as a
+    :class:`~pporpe.online.population.PopulationLearner` sets up its members, through a
+    first action, a step and both forwards: every kernel called once, with the argument
+    types every population passes (its engine converts its inputs). The kernels' types do
+    not depend on the population's sizes, so this covers every population."""
+    config = OnlineConfig(layers=1, units=2)
+    parts = PopulationParts.build(1, -np.ones(1), np.ones(1), config, 1)
+    engine = FusedEngine(parts)
+    parts.consts.write(0, config, parts.lay)
+    engine.set_member(0, config)
+    parts.init_member(0, config, 0)
     obs, no = np.zeros((1, 1)), np.zeros(1, dtype=bool)
-    pop.begin_episode([0], obs)
-    pop.step(np.zeros(1), obs, no, no)
-    pop.act_deterministic(obs)
-    pop.value(obs)
+    engine.begin(np.zeros(1, dtype=np.int64), obs, None)
+    engine.step(np.zeros(1), obs, no, no, np.ones(1, dtype=bool), None)
+    engine.outputs(0, obs)
+    engine.outputs(1, obs)
 
 
 def compile_kernels() -> None:
@@ -80,7 +84,7 @@ def warm_up() -> None:
     """
     if _Loaded.done:
         return
-    _Loaded.done = True  # the one-member population below must not warm up again
+    _Loaded.done = True  # set first, reset below if loading fails
     try:
         if not _in_cache():
             _compile_in_subprocess()
