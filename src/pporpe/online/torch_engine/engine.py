@@ -218,8 +218,8 @@ class TorchEngine:
         active: np.ndarray,
         forced_u: Tensor | None,
     ) -> tuple[StepStats, np.ndarray]:
-        """Learn transition t of the active members; their stats and a_{t+1}
-        (:class:`~pporpe.online.engine.Engine`)."""
+        """Learn transition t of the active members (one step of Algorithm 1); their stats
+        and a_{t+1} (:class:`~pporpe.online.engine.Engine`)."""
         K, act_np = self.K, active
         term_np = np.asarray(terminated, dtype=bool).reshape(K)
         trunc_np = np.asarray(truncated, dtype=bool).reshape(K)
@@ -248,6 +248,10 @@ class TorchEngine:
         ratios rho_dagger = sigma obj(rho, sigma) (detached); for members with
         ``policy_gradient="weighted_score"`` the first term is
         ``-rho_dagger log pi`` instead (rho_dagger detached).
+
+        By autograd: the policy gradient of eq. (3) (``grad_reg``) at s_t, whose weight
+        d obj/d rho is, for PPO-RPE, A~ of eq. (12) (``grad_rpe``), the derivative of
+        eq. (11) with C held constant (or eq. (16) where ``rpe_form="printed"``).
 
         Each distinct surrogate setting is evaluated on all K members and selected by
         mask, so a member's numbers never depend on which settings the other slots hold.
@@ -278,8 +282,8 @@ class TorchEngine:
     def _td_error(
         self, rew: Tensor, fwd: _Forward, term_np: np.ndarray, trunc_np: np.ndarray
     ) -> Tensor:
-        """delta; no bootstrap past a termination, nor past a time limit for members
-        with ``time_limit="terminal"``."""
+        """The TD error delta; no bootstrap past a termination, nor past a time limit for
+        members with ``time_limit="terminal"``."""
         co = self.consts
         ends = torch.from_numpy(term_np.copy()) | (
             torch.from_numpy(trunc_np.copy()) & co.limit_terminal
@@ -288,7 +292,7 @@ class TorchEngine:
         return td_error(rew * co.reward_scale, fwd.next_target, fwd.values[:, 0], bootstrap)
 
     def _policy_signal(self, fwd: _Forward, delta: Tensor) -> _PolicySignal:
-        """The regularised advantage, the ratio and the head's gradient at s_t."""
+        """The regularised advantage, the density ratio and the head's gradient at s_t."""
         co, pend = self.consts, self.state.pending
         raw0 = fwd.raw[:, 0].detach().requires_grad_(True)
         with torch.enable_grad():
@@ -307,7 +311,8 @@ class TorchEngine:
         return _PolicySignal(adv, ratio.detach(), log_ratio.detach(), d_raw, rho_dagger)
 
     def _trace_divergence(self, fwd: _Forward, sig: _PolicySignal) -> Tensor:
-        """The divergence of this step that drives the adaptive trace decay."""
+        """The trace divergence: the divergence of this step that drives the adaptive
+        trace decay."""
         pend, v = self.state.pending, fwd.values[:, 0]
         divergence = (sig.ratio - 1.0 - sig.log_ratio) + (v - pend.value_b) ** 2
         if self.consts.kl_analytic.any():
@@ -317,7 +322,8 @@ class TorchEngine:
         return divergence
 
     def _backward(self, fwd: _Forward, sig: _PolicySignal) -> None:
-        """The per-unit-signal gradient of row s_t into ``state.grad`` (hand backward)."""
+        """The per-unit-signal gradient of row s_t into ``state.grad`` (hand backward); the
+        value block's is that of -V, or of -rho_dagger V (``critic_signal="actor"``)."""
         K, lay = self.K, self.lay
         dout = torch.zeros(2 * K, lay.raw_dim)
         dout[:K] = sig.d_raw
@@ -330,7 +336,9 @@ class TorchEngine:
             grad.mul_(self.consts.norm_keep.view(1, K, lay.n_rows, 1))
 
     def _update(self, adv: Tensor, delta: Tensor, divergence: Tensor, act_np: np.ndarray) -> None:
-        """Traces, td-AmsProp (in cache-sized blocks of members) and the t-soft target."""
+        """Traces, td-AmsProp (in cache-sized blocks of members) and the t-soft target;
+        the optimiser's signal is A on the policy block and, on the value block, delta
+        or A (``critic_signal="actor"``)."""
         st, co, lay = self.state, self.consts, self.lay
         act = torch.from_numpy(act_np.copy())
         c1, c2 = trace_scalars(

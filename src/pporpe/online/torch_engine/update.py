@@ -74,7 +74,8 @@ def trace_scalars(
     gl2: Tensor,
     active: Tensor,
 ) -> tuple[Tensor, Tensor]:
-    """Advance the accumulated divergence ``D`` and the decay in place; return ``(c1, c2)``.
+    """Advance the accumulated divergence ``D`` and the trace decay in place; return
+    ``(c1, c2)``.
 
     ``D <- D + d;  decay = exp(-kappa D);  D <- nan_to_num(decay D)`` for members with
     ``kappa > 0`` (others keep ``D = 0``, ``decay = 1``), exactly as AdaptiveTraces.
@@ -165,6 +166,8 @@ def update_momentum(
     bias_row: int = 0,
 ) -> Tensor:
     """Pass 2: t-momentum and the parameter step (in place); return D2 sums of t-soft.
+
+    The step is the SGD of eq. (4) (``sgd``): ``p <- p - lr / bc1 * m``.
 
     ``P [3, K, R, U]`` (policy, value, target), ``W num den [2, K, S]``, ``rows [2, K, R]``
     from pass 1, ``row_seg [R]`` the segment of each row; ``col_seg [U]`` (optional) the
@@ -274,7 +277,8 @@ def tsoft_rates(
 
 
 def update_target(P: Tensor, rate: Tensor, active: Tensor) -> None:
-    """``target <- target + rate (theta_v - target)`` for the active members (in place)."""
+    """The target update: ``target <- target + rate (theta_v - target)`` for the active
+    members (in place)."""
     tgt = P[2]
     new = tgt + (P[1] - tgt) * rate.view(-1, 1, 1)
     P[2].copy_(torch.where(active.view(-1, 1, 1), new, tgt))
@@ -288,7 +292,7 @@ def opt_scalars(
     ams_decay: np.ndarray,
     ams_raw: np.ndarray,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Bias-correction scalars of td-AmsProp per member, in float64 as TDAmsProp computes them.
+    """The bias corrections of td-AmsProp per member, in float64 as TDAmsProp computes them.
 
     ``steps`` are the members' step counts t (already advanced); ``beta1``, ``beta2``,
     ``lr``, ``ams_decay`` (float64) and ``ams_raw`` (bool: the maximum of the raw moment)

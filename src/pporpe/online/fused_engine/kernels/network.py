@@ -72,8 +72,8 @@ def forward_net(
     rstd: np.ndarray,
     out: np.ndarray,
 ) -> None:
-    """One net ``p [n_pad]`` on rows ``x [R, obs]``; its first ``out.shape[1]`` outputs
-    into ``out [R, n_out]``.
+    """The forward of one net ``p [n_pad]`` on rows ``x [R, obs]``; its first
+    ``out.shape[1]`` outputs into ``out [R, n_out]``.
 
     Unless ``rstd`` is empty, row 0's intermediates go to ``cache [layers + 1, 3, width]``
     (input of each linear layer, pre-activation y, xhat) and ``rstd [layers]``.

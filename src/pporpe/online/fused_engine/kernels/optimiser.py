@@ -37,8 +37,8 @@ def _pass1(
     g: np.ndarray, e: np.ndarray, r: np.ndarray, v: np.ndarray, vm: np.ndarray,
     m: np.ndarray, diff: np.ndarray, sc: np.ndarray,
 ) -> np.float32:  # fmt: skip
-    """Traces and moments of one segment (in place); ``gv - m`` into ``diff``; its sum of
-    squares. ``sc`` as in :func:`update_net`."""
+    """Traces, td-AmsProp's second moment and AMSGrad maximum of one segment (in place);
+    ``gv - m`` into ``diff``; its sum of squares. ``sc`` as in :func:`update_net`."""
     sig, c1, c2, b2, omb2, vfac, sbc2, oeps = sc[0], sc[1], sc[2], sc[3], sc[4], sc[5], sc[6], sc[7]
     zero = np.float32(0.0)
     acc = zero
@@ -67,7 +67,7 @@ def _pass2(
     p: np.ndarray, m: np.ndarray, diff: np.ndarray, omb: np.float32, step: np.float32,
     target: np.ndarray,
 ) -> np.float32:  # fmt: skip
-    """Momentum and parameter step of one segment (in place); ``sum((p - target)^2)``
+    """t-momentum and parameter step of one segment (in place); ``sum((p - target)^2)``
     after it when ``target`` is given (else 0)."""
     for i in range(p.shape[0]):
         mn = m[i] + omb * diff[i]
@@ -90,7 +90,8 @@ def update_net(
     target: np.ndarray,
     diff: np.ndarray,
 ) -> float:
-    """Traces, td-AmsProp and t-momentum of one net of one member, segment by segment.
+    """Traces, td-AmsProp and t-momentum of one net of one member, segment by segment:
+    the SGD step of eq. (4) (``sgd``).
 
     ``buf = (p, g, e, r, v, vmax_s, m, W, num, den)`` (1-D views), ``seg [S, 2]`` the
     element range ``[lo, hi)`` of every segment (parameter tensor), ``sc`` float32
@@ -117,7 +118,8 @@ def update_net(
 
 @scalar_jit
 def opt_scalars(step: int, cf: np.ndarray, ams_raw: bool) -> tuple[float, float, float]:
-    """td-AmsProp's ``(vfac, sqrt(bc2), lr / bc1)`` at step t (as update.opt_scalars)."""
+    """The bias corrections of td-AmsProp, ``(vfac, sqrt(bc2), lr / bc1)`` at step t (as
+    update.opt_scalars)."""
     t = np.float64(max(step, 1))
     bc1 = 1.0 - cf[C_BETA1] ** t
     bc2 = 1.0 - cf[C_BETA2] ** t
@@ -133,7 +135,8 @@ def opt_scalars(step: int, cf: np.ndarray, ams_raw: bool) -> tuple[float, float,
 def trace_scalars(
     k: int, div: np.float32, cf: np.ndarray, kappa_pos: bool, sc: tuple
 ) -> tuple[np.float32, np.float32]:
-    """Advance D and the decay of member k (float32, as update.trace_scalars); ``(c1, c2)``."""
+    """Advance D and the trace decay of member k (float32, as update.trace_scalars);
+    ``(c1, c2)``."""
     D, decay = sc[0], sc[1]
     gl1, gl2 = np.float32(cf[C_GL1]), np.float32(cf[C_GL2])
     if not kappa_pos:
@@ -171,8 +174,9 @@ def tsoft_rate(
 
 @loop_jit
 def update_target(tgt: np.ndarray, val: np.ndarray, rate: np.float32) -> None:
-    """``tgt <- tgt + rate (val - tgt)``, from the nearer end as ``torch.lerp``: exactly
-    ``val`` at rate 1 (the test bed's learner has no target network: ``tau=1``)."""
+    """The target update ``tgt <- tgt + rate (val - tgt)``, from the nearer end as
+    ``torch.lerp``: exactly ``val`` at rate 1 (the test bed's learner has no target
+    network: ``tau=1``)."""
     if rate < np.float32(0.5):
         for i in range(tgt.shape[0]):
             tgt[i] = tgt[i] + (val[i] - tgt[i]) * rate

@@ -71,8 +71,9 @@ def _signals(
     bounds: np.ndarray,
     d_raw: np.ndarray,
 ) -> tuple[float, float, float, float, float]:
-    """delta, A, rho, the trace divergence and rho_dagger of member k; the head's signal
-    ``d(-sigma obj)/d raw`` into ``d_raw`` (float32)."""
+    """The TD error delta, the regularised advantage A, the density ratio rho, the trace
+    divergence and rho_dagger of member k; the head's signal ``d(-sigma obj)/d raw``,
+    the policy gradient of eq. (3) (``grad_reg``), into ``d_raw`` (float32)."""
     u_b, logp_b, value_b, raw_b = pend[1], pend[2], pend[3], pend[4]
     rew, term, trunc = inp[0], inp[2], inp[3]
     v, next_target = np.float64(vals[0]), np.float64(vals[2])
@@ -118,7 +119,8 @@ def _learn(
     sig: tuple,
     scratch: tuple,
 ) -> None:
-    """Backward, traces, td-AmsProp, t-soft and the target of member k (in place)."""
+    """Backward, traces, td-AmsProp, t-soft and the target of member k (in place); the
+    value block's signal and weight follow ``critic_signal`` (flag ``F_CRITIC_ACTOR``)."""
     e, r, v, vm, m, W, num, den = opt
     g, diff, cache, rstd = scratch[0], scratch[1], scratch[2], scratch[3]
     d_raw, delta, adv, div, rho_dagger = sig
@@ -199,7 +201,7 @@ def fused_step(
     fl: np.ndarray, geo: np.ndarray, lay: np.ndarray, seg: np.ndarray, hf: np.ndarray,
     bounds: np.ndarray, out: tuple, scratch: tuple,
 ) -> None:  # fmt: skip
-    """One step of every member (in place on the learner's buffers).
+    """One step of every member (in place on the learner's buffers): Algorithm 1's step.
 
     ``P [3, K, n_pad]``; ``opt = (e, r, v, vmax_s, m [2, K, n_pad], W, num, den [2, K, S])``;
     ``sc = (D, decay [K] f32, t-soft W, sigma2 [K] f64, steps [K] i64)``; ``pend = (obs,

@@ -29,7 +29,14 @@ __all__ = ["surrogate_closed"]
 def surrogate_closed(
     method: int, rho: float, sigma: float, eps: float, beta: float, eta: float
 ) -> tuple[float, float]:
-    """``(obj(rho, sigma), d obj / d rho)`` of the surrogate ``method`` (module docstring)."""
+    """``(obj(rho, sigma), d obj / d rho)`` of the surrogate ``method`` (module docstring).
+
+    ``obj`` is the per-sample objective of eq. (2) (``loss_reg``), whose negative is the
+    loss of eq. (6) (``loss_ppo``) for PPO and PPO-RB (rho_PPO of eq. (5),
+    ``ratio_ppo``) and of eq. (11) (``loss_rpe``) for PPO-RPE (the regulariser of
+    eq. (10), ``reg_rpe``, with C of eq. (15), ``mag_rpe``). ``d obj / d rho`` is, for
+    PPO-RPE, A~ of eq. (12) (``grad_rpe``) or, printed, of eq. (16) (``grad_rpe_thre``).
+    """
     if method <= 1:
         slope = 0.0 if method == 0 else eta
         if sigma * (rho - 1.0) >= eps:
