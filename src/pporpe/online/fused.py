@@ -1,5 +1,6 @@
-"""Deprecated: the old path of the fused kernel, now :mod:`pporpe.online.fused_engine.kernels`
-(one file per stage); this re-export of its public names goes in the next release."""
+"""Deprecated: the old path of the fused kernel, now
+:mod:`pporpe.online.fused_engine.kernels` (one file per stage). This re-export of its
+public names is kept for one release and removed in the one after."""
 
 from __future__ import annotations
 

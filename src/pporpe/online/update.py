@@ -1,5 +1,6 @@
 """Deprecated: the old path of the torch engine's elementwise update, now
-:mod:`pporpe.online.torch_engine.update`; this re-export goes in the next release."""
+:mod:`pporpe.online.torch_engine.update`. This re-export is kept for one release and
+removed in the one after."""
 
 from __future__ import annotations
 
