@@ -9,8 +9,8 @@ element (bias corrections, the t-soft rate) are computed outside and passed in a
 tensors. Members outside ``active`` keep every buffer
 bitwise (``torch.where`` selects the old value).
 
-Per member (the same rules as :class:`pporpe.online.traces.AdaptiveTraces`,
-:class:`pporpe.online.optim.TDAmsProp` and :class:`pporpe.online.tsoft.TSoftUpdate`):
+Per member (the same rules as :class:`.traces.AdaptiveTraces`, :class:`.optim.TDAmsProp`
+and :class:`.tsoft.TSoftUpdate`):
 
 Traces, with ``c1 = gamma lambda1 decay``, ``c2 = gamma lambda2 decay``::
 
