@@ -152,7 +152,6 @@ class PopulationLearner:
                     f"({a!r} vs {b!r})"
                 )
 
-
     def _set_config(self, k: int, cfg: OnlineConfig) -> None:
         """Write member k's constants (everything but its state)."""
         self._check_shape(cfg)
@@ -197,7 +196,6 @@ class PopulationLearner:
     def finite(self) -> Tensor:
         """``[K]`` bool: all of the member's parameters and target are finite."""
         return torch.isfinite(self.state.params).flatten(2).all(-1).all(0)
-
 
     # -- acting ---------------------------------------------------------------------------
     def _sample(self, raw: Tensor, pts: Tensor) -> Tensor:

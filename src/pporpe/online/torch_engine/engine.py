@@ -89,7 +89,6 @@ class _PolicySignal:
     """``[K]`` the surrogate's effective ratio sigma obj(rho, sigma), detached."""
 
 
-
 def _update_functions(compile_update: bool) -> tuple[Callable[..., Tensor], Callable[..., None]]:
     """The elementwise update and the target update, compiled or eager."""
     if not compile_update:
@@ -98,7 +97,6 @@ def _update_functions(compile_update: bool) -> tuple[Callable[..., Tensor], Call
     # and past dynamo's default limit (8) it would fall back to eager
     torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
     return torch.compile(update_chunk, dynamic=False), torch.compile(update_target, dynamic=False)
-
 
 
 def sample_pre_map(head: PolicyHead, raw: Tensor, pts: Tensor) -> Tensor:

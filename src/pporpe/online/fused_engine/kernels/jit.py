@@ -8,7 +8,8 @@ kernel split across the files of this package, a change to ``network.py`` would 
 locators whose source stamp is :func:`kernels_source_stamp`, a hash of every file here:
 any change to any of them recompiles every kernel. The cache lies where numba would put
 it otherwise (``NUMBA_CACHE_DIR``, else the package's ``__pycache__``, else the user's
-cache folder); functions outside this package keep numba's own locators.
+cache folder); functions outside this package keep numba's own locators. (Where
+``NUMBA_CACHE_LOCATOR_CLASSES`` is set, numba uses those locators instead.)
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ FM = {"nsz", "reassoc", "contract"}
 
 def kernels_source_stamp(folder: Path = KERNELS_DIR) -> str:
     """sha256 over the names and contents of every ``*.py`` file of ``folder``."""
-    files = sorted(folder.glob("*.py"))
-    return _stamp(folder, tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in files))
+    stats = [(p.name, p.stat()) for p in sorted(folder.glob("*.py"))]
+    return _stamp(folder, tuple((name, st.st_mtime_ns, st.st_size) for name, st in stats))
 
 
 @functools.lru_cache(maxsize=8)
