@@ -82,7 +82,7 @@ DIAGNOSTIC: dict[str, dict[str, Any]] = {"joint_head": {"head_tensors": "joint"}
 ENGINE: dict[str, dict[str, Any]] = {"fused": {"engine": "fused"}}
 """The implementation of the step, not a setting of the learner: the configs run by
 pporpe's torch engine (the engine of the first runs here) unless ``fused`` is added, the
-numba kernel (:mod:`pporpe.online.fused`, 5x faster at 60 members). The two agree to
+numba kernel (:mod:`pporpe.online.fused_engine`, 5x faster at 60 members). The two agree to
 float rounding, so a config and its ``+fused`` twin are the same learner; the path table
 compares each config with the baseline of its own engine (:func:`baseline_of`)."""
 

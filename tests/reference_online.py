@@ -1,13 +1,14 @@
 r"""A scalar reference of the online learner, for the tests only.
 
 This is pporpe 0.2.0's single-run ``OnlineLearner``, composed of the library's scalar
-components (:class:`~pporpe.online.optim.TDAmsProp`, :class:`~pporpe.online.traces.
-AdaptiveTraces`, :class:`~pporpe.online.tsoft.TSoftUpdate`, the flat actor-critic and
+components (:class:`~pporpe.online.torch_engine.optim.TDAmsProp`,
+:class:`~pporpe.online.torch_engine.traces.AdaptiveTraces`,
+:class:`~pporpe.online.torch_engine.tsoft.TSoftUpdate`, the flat actor-critic and
 the policy heads) with autograd for the backward pass. The library's learner is the
 population learner (:mod:`pporpe.online.population`); the tests check that each of its
 members computes what this reference computes, given the same actions.
 
-Step order, signals and traces: see :mod:`pporpe.online.population`.
+Step order, signals and traces: see :mod:`pporpe.online.torch_engine.engine`.
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ from pporpe.nn.actor_critic import FlatActorCritic
 from pporpe.nn.mlp import mlp
 from pporpe.nn.policies import ActionMap, PolicyHead, make_head
 from pporpe.online.config import OnlineConfig
-from pporpe.online.optim import TDAmsProp
-from pporpe.online.traces import AdaptiveTraces
-from pporpe.online.tsoft import TSoftUpdate
+from pporpe.online.torch_engine.optim import TDAmsProp
+from pporpe.online.torch_engine.traces import AdaptiveTraces
+from pporpe.online.torch_engine.tsoft import TSoftUpdate
 from pporpe.surrogates import surrogate_objective
 
 __all__ = ["ReferenceLearner", "StepStats"]

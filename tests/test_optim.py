@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import pytest
 import torch
 
-from pporpe.online.optim import TDAmsProp, _fused_works
+from pporpe.online.torch_engine.optim import TDAmsProp, _fused_works
 
 FUSED_MODES = [None, False]  # fused kernel where usable / always eager
 

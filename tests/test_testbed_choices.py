@@ -210,7 +210,7 @@ def test_split_head_t_momentum_is_per_part_against_a_float64_reference() -> None
     the momentum of every element equals TLaProp's rule computed per tensor in float64,
     w = (n + k n) / (k n + |gv - m|^2) over that tensor's n elements, m += w/(W+w) (gv - m)."""
     from pporpe.nn.batched import NetLayout
-    from pporpe.online.update import update_chunk
+    from pporpe.online.torch_engine.update import update_chunk
 
     parts = (2, 2, 1)
     lay = NetLayout(3, 5, 2, 8, True, head_parts=parts)

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from pporpe.online.traces import AdaptiveTraces
+from pporpe.online.torch_engine.traces import AdaptiveTraces
 
 
 def reference_traces(grads, divs, gamma, lam1, lam2, kappa):

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from pporpe.online.tsoft import TSoftUpdate
+from pporpe.online.torch_engine.tsoft import TSoftUpdate
 
 
 def reference_tsoft(

@@ -145,7 +145,8 @@ def relative_ratio(ratio: Tensor, beta: float) -> Tensor:
 def rpe_divergence(ratio: Tensor, beta: float, dim: int | tuple[int, ...] | None = None) -> Tensor:
     r"""Monte-Carlo estimate of the relative Pearson divergence (eq. (9) (``div_rpe``), Sec. II-C).
 
-    The mixture policy pi_beta is that of eq. (8) (``pi_beta``).
+    The mixture policy pi_beta is that of eq. (8) (``pi_beta``); at ``beta = 0`` this is
+    the Pearson divergence of eq. (7) (``div_pe``).
 
     .. math:: \mathrm{PE}_\beta(\pi, \pi_b)
               = \mathbb{E}_{a\sim\pi_\beta}\big[\tfrac12(\rho_\beta(a) - 1)^2\big]

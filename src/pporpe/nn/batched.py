@@ -221,7 +221,7 @@ class ForwardCache:
 def forward_chain(
     flat: Tensor, x: Tensor, lay: NetLayout, activation: str, keep: int = 0
 ) -> tuple[Tensor, ForwardCache | None]:
-    """Evaluate B stacked networks on their own rows.
+    """Evaluate B stacked networks on their own rows (the forward pass).
 
     Args:
         flat: ``[B, n_pad]`` parameters (e.g. ``P.view(3K, n_pad)`` or a leading slice).

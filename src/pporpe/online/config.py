@@ -187,7 +187,7 @@ class OnlineConfig:
     ``OnlineConfig(**BASELINE_CHOICES)`` none, ``OnlineConfig(**TESTBED)`` is the author's
     test bed's learner. The history of the defaults is in CHANGELOG.md.
     Optimiser constants the paper leaves at "default" are documented in
-    :class:`pporpe.online.optim.TDAmsProp`.
+    :class:`pporpe.online.torch_engine.optim.TDAmsProp`.
     """
 
     method: Method = "rpe"
@@ -289,10 +289,10 @@ class OnlineConfig:
     computes the same either way."""
     engine: Engine = "fused"
     """Implementation of the step: one numba kernel per step over all the members
-    (``"fused"``, default, pporpe.online.fused: 3-14x faster than torch, compiled once
-    and cached on disk) or batched torch operations (``"torch"``, the reference the
-    kernel is tested against). The two agree to float rounding, not bitwise, so this is
-    part of a run's identity."""
+    (``"fused"``, default, pporpe.online.fused_engine: 3-14x faster than torch, compiled
+    once and cached on disk) or batched torch operations (``"torch"``,
+    pporpe.online.torch_engine, the reference the kernel is tested against). The two
+    agree to float rounding, not bitwise, so this is part of a run's identity."""
     compile: bool = True
     """With ``engine="torch"``: compile its elementwise update (traces, td-AmsProp,
     t-soft) with ``torch.compile``, about 2x faster per step on this project's 2-core CPU
