@@ -214,6 +214,22 @@ def reproduction_testbed_page(root: Path) -> str:
     )  # fmt: skip
 
 
+def reproduction_50seeds_page(root: Path) -> str:
+    """The report of the pendulum tasks at 50 seeds (committed run by run while it runs)."""
+    return report_page(
+        root, "results/paper-50seeds", "The pendulum tasks at 50 seeds",
+        "`experiments/paper-50seeds.toml`: the paper's two pendulum tasks with Table I (the "
+        "learner of [the first reproduction](reproduction.md), by the fused engine), 50 seeds "
+        "per method, where a confidence interval of P(PPO-RPE > rival) is narrow enough to "
+        "say *equivalent*. The grid runs outside the repository (`pporpe reproduce "
+        "experiments/paper-50seeds.toml --out DIR`); `python experiments/collect.py DIR "
+        "results/paper-50seeds` commits each finished run, and `pporpe report "
+        "results/paper-50seeds` writes the report below from those committed. *What ran* "
+        "says how many runs it covers: until every run is done, its verdicts are those of "
+        "the seeds finished.",
+    )  # fmt: skip
+
+
 # --- The learner ablation ---------------------------------------------------------------
 
 
@@ -650,6 +666,7 @@ def with_run_folder_columns(root: Path) -> str:
 PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
+    "docs/results/reproduction-50seeds.md": reproduction_50seeds_page,
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
     "docs/results/vs-sb3.md": vs_sb3_page,

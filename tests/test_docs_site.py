@@ -22,6 +22,7 @@ SOURCES = [
     "benchmarks/results/throughput.json",
     "results/paper-testbed/REPORT.md",
     "results/paper-testbed/summary.csv",
+    "results/paper-50seeds/REPORT.md",
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
     "docs/run-folders.md",
