@@ -10,6 +10,11 @@ state a checkpoint keeps.
 from __future__ import annotations
 
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,7 +27,9 @@ import torch
 from pporpe.batch import BatchConfig, BatchLearner, train_batch
 from pporpe.batch.kind import BatchPopulationTrainer
 from pporpe.batch.population import BatchPopulation, check_member
-from pporpe.runs.logger import EpisodeRecord
+from pporpe.experiments.grid import load_spec
+from pporpe.experiments.reproduce import reproduce
+from pporpe.runs.logger import EpisodeRecord, read_records
 from pporpe.runs.loop import run_queue
 
 
@@ -242,30 +249,64 @@ def records(results: list[Any]) -> list[list[EpisodeRecord]]:
     return [[replace(r, wall_time=0.0) for r in res.records] for res in results]
 
 
+PENDULUM = BatchConfig(
+    env="pendulum", n_envs=2, n_steps=32, batch_size=16, n_epochs=2, layers=1, units=16,
+    total_steps=64, eval_episodes=2, checkpoint_every=1,
+)  # fmt: skip
+QUEUE = [
+    replace(PENDULUM, seed=0, total_steps=64 * 3),
+    replace(PENDULUM, seed=1, method="rpe"),
+    replace(PENDULUM, seed=2, method="rb", total_steps=64 * 2),
+    replace(PENDULUM, seed=3, method="rpe", total_steps=64 * 4),
+]
+"""Four runs for three slots: the second finishes after one update and the queued fourth
+takes its slot; after the third update one run is left and the trainer is compacted to it."""
+
+
+def queue(root: Path) -> list[tuple[BatchConfig, Path]]:
+    return [(c, root / f"s{c.seed}") for c in QUEUE]
+
+
 def test_a_population_of_runs_gives_the_records_of_runs_alone(tmp_path: Path) -> None:
-    """Three InvertedPendulum runs through one population of 3 slots (the shortest finishes
-    first, the trainer is compacted to the others): the same records, test returns and
-    parameters as each run trained alone, and the same again when repeated."""
-    base = BatchConfig(env="pendulum", n_envs=2, n_steps=32, batch_size=16, n_epochs=2,
-                       layers=1, units=16, total_steps=64 * 3, eval_episodes=2,
-                       checkpoint_every=1)  # fmt: skip
-    cfgs = [replace(base, seed=0), replace(base, seed=1, method="rpe", total_steps=64),
-            replace(base, seed=2, method="rb")]  # fmt: skip
-
-    def queue(root: Path) -> list[tuple[BatchConfig, Path]]:
-        return [(c, root / f"s{c.seed}") for c in cfgs]
-
+    """Four InvertedPendulum runs through one population of three slots (a slot refilled
+    from the queue, the trainer compacted to the last run): the same records, test returns,
+    parameters and random streams as each run trained alone, and the same again."""
     pop = run_queue(queue(tmp_path / "pop"), capacity=3, home=tmp_path / "pop")
     again = run_queue(queue(tmp_path / "again"), capacity=3, home=tmp_path / "again")
     alone = [train_batch(c, d, progress=False) for c, d in queue(tmp_path / "alone")]
-    assert [r.chunks for r in pop] == [3, 1, 3] and all(r.error is None for r in pop)
+    assert [r.chunks for r in pop] == [3, 1, 2, 4] and all(r.error is None for r in pop)
     assert records(pop) == records(alone) == records(again)
     assert [r.evaluation for r in pop] == [r.evaluation for r in alone]
-    for c in cfgs:
+    for c in QUEUE:
         a = torch.load(tmp_path / "pop" / f"s{c.seed}" / "checkpoint.pt", weights_only=False)
         b = torch.load(tmp_path / "alone" / f"s{c.seed}" / "checkpoint.pt", weights_only=False)
         assert torch.equal(a["learner"]["theta"], b["learner"]["theta"])
         assert torch.equal(a["torch_rng"], b["torch_rng"])
+
+
+def test_a_stopped_population_resumes_to_the_records_of_an_uninterrupted_one(
+    tmp_path: Path,
+) -> None:
+    """The queue stopped by an exception in its third update (after the population's
+    checkpoints of the first two) and restarted: every run's records are complete and equal
+    to the uninterrupted queue's."""
+    full = run_queue(queue(tmp_path / "full"), capacity=3, home=tmp_path / "full")
+    seen: list[Any] = []
+
+    class Stop(RuntimeError):
+        pass
+
+    def stop(trainer: Any, report: Any, t: float) -> None:
+        seen.append(report)
+        if len(seen) == 7:  # 3 runs' first update, 3 runs' second, one run's third
+            raise Stop
+
+    with pytest.raises(Stop):
+        run_queue(queue(tmp_path / "b"), capacity=3, home=tmp_path / "b", on_chunk=stop)
+    assert (tmp_path / "b" / "checkpoint.pt").exists()
+    resumed = run_queue(queue(tmp_path / "b"), capacity=3, home=tmp_path / "b")
+    assert any(r.resumed_from > 0 for r in resumed)
+    assert records(resumed) == records(full)
 
 
 def test_members_must_share_the_shape_of_the_computation() -> None:
@@ -280,3 +321,71 @@ def test_members_must_share_the_shape_of_the_computation() -> None:
     with pytest.raises(RuntimeError, match="slot 0 already holds a run"):
         pop.start(0, DRIFT)
     pop.close()
+
+
+KILL_SPEC = """
+name = "killbatch"
+kind = "batch"
+methods = ["ppo", "rpe"]
+seeds = [0, 1]
+eval_episodes = 1
+checkpoint_every = 1
+
+[learner]
+layers = 1
+units = 8
+n_envs = 1
+n_steps = 64
+batch_size = 32
+n_epochs = 2
+
+[[tasks]]
+env = "pendulum"
+steps = 2560
+"""
+
+
+def _launch(spec: Path, out: Path) -> subprocess.Popen[bytes]:
+    args = ["--workers", "1", "--population", "2", "--checkpoint-seconds", "0", "--quiet"]
+    return subprocess.Popen(
+        [sys.executable, "-m", "pporpe.cli", "reproduce", str(spec), "--out", str(out), *args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def test_sigkill_a_batch_population_then_resume_gives_the_same_records(tmp_path: Path) -> None:
+    """Four batch runs (two methods, two seeds) through one worker's population of two
+    slots: killed with SIGKILL mid-way and restarted, every run's records are complete and
+    equal to those of the uninterrupted grid (and of the runs alone)."""
+    spec_path = tmp_path / "kill.toml"
+    spec_path.write_text(KILL_SPEC)
+    spec = load_spec(spec_path)
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=1, population=2, progress=False).ok
+    assert len(list((ref / "populations").glob("*/population.json"))) == 1
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until the population has checkpointed a few times
+        lines = [len(p.read_text().splitlines()) for p in out.glob("pendulum/*/seed*/episodes.csv")]
+        if any(n > 8 for n in lines) and list(out.glob("populations/*/checkpoint.pt")):
+            break
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)
+    unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
+    assert unfinished, "the kill came too late to test resuming"
+    proc = _launch(spec_path, out)
+    assert proc.wait(timeout=300) == 0
+    for run in spec.runs:
+        got = read_records(out / run.key / "episodes.csv")
+        want = read_records(ref / run.key / "episodes.csv")
+        assert [r.episode for r in got] == list(range(len(want)))
+        assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]
+    alone = train_batch(spec.runs[0].config, tmp_path / "alone", progress=False)
+    assert records([alone])[0] == [
+        replace(r, wall_time=0.0) for r in read_records(ref / spec.runs[0].key / "episodes.csv")
+    ]
