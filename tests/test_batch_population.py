@@ -389,3 +389,15 @@ def test_sigkill_a_batch_population_then_resume_gives_the_same_records(tmp_path:
     assert records([alone])[0] == [
         replace(r, wall_time=0.0) for r in read_records(ref / spec.runs[0].key / "episodes.csv")
     ]
+
+
+def test_members_with_layer_norm_swish_and_a_state_dependent_scale_equal_their_runs_alone() -> (
+    None
+):
+    """Networks whose per-member sizes do not fill whole vector registers (20 units, one
+    environment: SiLU's vectorised and scalar kernels round differently, so the probe
+    computes it member by member) with LayerNorm and the scale as a network output."""
+    base = replace(DRIFT, n_envs=1, n_steps=40, batch_size=20, units=20, activation="swish",
+                   layer_norm=True, scale="state", total_steps=40 * 3)  # fmt: skip
+    cfgs = [replace(base, seed=s, method=m) for s, m in ((5, "rpe"), (6, "ppo"), (7, "rb"))]
+    check_population_against_solo(cfgs, 3)

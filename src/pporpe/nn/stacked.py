@@ -18,7 +18,11 @@ x^T)`` transposed back; ``"bmm_mm"`` and ``"bmm_t_mm"``, the same with the weigh
 gradient member by member) are compared bit for bit with ``F.linear`` member by member,
 outputs and gradients; the first that agrees is used, else ``"loop"``, ``F.linear``
 member by member (exact by construction, K calls). LayerNorm is probed the same way
-(``"batched"``: the normalisation then the member's scale and shift, or ``"loop"``).
+(``"batched"``: the normalisation then the member's scale and shift, or ``"loop"``), and
+so are the activations: PyTorch computes the elements of a tensor that fill whole vector
+registers with vectorised kernels and the rest with scalar ones, which round some
+functions differently (SiLU, softplus, sigmoid; not tanh, ReLU, exp or log on the machine
+tested), and stacking K members moves elements from one to the other.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ __all__ = [
     "LayerNormMode",
     "LinearMode",
     "StackedMLP",
+    "activation_mode",
     "backward_quietly",
     "layer_norm_mode",
     "linear_mode",
@@ -53,6 +58,7 @@ LayerNormMode = Literal["batched", "loop"]
 """How :func:`stacked_layer_norm` computes K LayerNorms."""
 
 _PROBE_MEMBERS = 3
+_PROBE_ELEMENTS = 16384
 _LAYOUT_WARNING = "grad and param do not obey the gradient layout contract"
 
 
@@ -151,9 +157,9 @@ def _same_bits(
     return all(torch.equal(a, b) for a, b in zip(*results, strict=True))
 
 
-def _probe_inputs(shapes: Sequence[tuple[int, ...]]) -> list[Tensor]:
+def _probe_inputs(shapes: Sequence[tuple[int, ...]], members: int = _PROBE_MEMBERS) -> list[Tensor]:
     gen = torch.Generator().manual_seed(0)
-    return [torch.randn(_PROBE_MEMBERS, *s, generator=gen) for s in shapes]
+    return [torch.randn(members, *s, generator=gen) for s in shapes]
 
 
 def linear_mode(rows: int, fan_in: int, fan_out: int, grad: bool) -> LinearMode:
@@ -203,6 +209,30 @@ def _layer_norm_mode(rows: int, units: int, eps: float, grad: bool, threads: int
     return "batched" if _same_bits(batched, alone, inputs, grad) else "loop"
 
 
+def activation_mode(act: Callable[[Tensor], Tensor], rows: int, units: int, grad: bool) -> str:
+    """``"batched"`` when ``act`` on a ``[K, rows, units]`` tensor gives what it gives
+    member by member (outputs and, with ``grad``, gradients; vectorised and scalar kernels
+    of some functions, e.g. SiLU, round differently, and which elements take which depends
+    on the tensor's size), else ``"loop"``."""
+    return _activation_mode(act, rows, units, grad, torch.get_num_threads())
+
+
+@functools.cache
+def _activation_mode(
+    act: Callable[[Tensor], Tensor], rows: int, units: int, grad: bool, threads: int
+) -> str:
+    # enough members that a function whose vectorised and scalar kernels round differently
+    # shows it (a difference is rare: about one element in fifty for SiLU)
+    members = max(_PROBE_MEMBERS, -(-_PROBE_ELEMENTS // (rows * units)))
+    (x,) = _probe_inputs([(rows, units)], members)
+    x = 3.0 * x
+
+    def alone(t: list[Tensor]) -> Tensor:
+        return torch.stack([act(t[0][k]) for k in range(t[0].shape[0])])
+
+    return "batched" if _same_bits(lambda t: act(t[0]), alone, [x], grad) else "loop"
+
+
 class StackedMLP:
     """K copies of one :class:`~pporpe.nn.mlp.FlatMLP` network, member k with the
     parameter views ``params[i][k]`` (``params``: ``[K, *shape]`` views, in
@@ -238,8 +268,10 @@ class StackedMLP:
                 g, b = params[op.index], params[op.index + 1]
                 ln_mode = layer_norm_mode(rows, g.shape[1], op.norm_eps, grad)
                 x = stacked_layer_norm(x, g, b, op.norm_eps, ln_mode)
-            else:
+            elif activation_mode(op.act, rows, x.shape[2], grad) == "batched":
                 x = op.act(x)
+            else:
+                x = torch.stack([op.act(xk) for xk in x.unbind(0)])
         return x
 
     def _loop_no_grad(self, i: int, x: Tensor, fan_out: int) -> Tensor:
