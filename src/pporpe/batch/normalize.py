@@ -18,8 +18,10 @@ def merge_moments(
     (float64; ``count`` a float, or an array broadcasting against ``mean``: one count per
     member of a population)."""
     n = x.shape[axis]
-    b_mean = x.mean(axis=axis)
-    b_var = x.var(axis=axis)
+    if n == 1:  # what mean and var give for one sample, exactly (x / 1 and 0), faster
+        b_mean, b_var = np.take(x, 0, axis=axis), np.zeros_like(mean)
+    else:
+        b_mean, b_var = x.mean(axis=axis), x.var(axis=axis)
     total = count + n
     delta = b_mean - mean
     m2 = var * count + b_var * n + delta * delta * count * n / total
