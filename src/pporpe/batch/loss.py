@@ -26,7 +26,15 @@ from ..surrogates import surrogate_objective
 from .buffer import Minibatch
 from .config import BatchConfig
 
-__all__ = ["LossMetrics", "LossModel", "NetOutputs", "loss_terms", "minibatch_loss"]
+__all__ = [
+    "LossMetrics",
+    "LossModel",
+    "NetOutputs",
+    "Objective",
+    "config_objective",
+    "loss_terms",
+    "minibatch_loss",
+]
 
 
 class LossModel(Protocol):
@@ -80,19 +88,35 @@ def minibatch_loss(model: LossModel, mb: Minibatch, cfg: BatchConfig) -> tuple[T
     return loss_terms(NetOutputs(logp, raw, model.value(mb.obs)), mb, cfg, model.entropy)
 
 
+Objective = Callable[[Tensor, Tensor], Tensor]
+"""The per-sample surrogate objective rho * A^dagger of (ratio, advantages)."""
+
+
+def config_objective(cfg: BatchConfig) -> Objective:
+    """The surrogate objective of ``cfg`` (method, thresholds, PPO-RPE's form)."""
+
+    def objective(ratio: Tensor, adv: Tensor) -> Tensor:
+        return surrogate_objective(cfg.method, ratio, adv, cfg.eps, cfg.beta, cfg.eta, cfg.rpe_form)
+
+    return objective
+
+
 def loss_terms(
-    out: NetOutputs, mb: Minibatch, cfg: BatchConfig, entropy: Callable[[Tensor], Tensor]
+    out: NetOutputs,
+    mb: Minibatch,
+    cfg: BatchConfig,
+    entropy: Callable[[Tensor], Tensor],
+    objective: Objective | None = None,
 ) -> tuple[Tensor, LossMetrics]:
     """The loss of a minibatch from the networks' outputs, reduced over the last dimension
-    (rows); ``entropy`` maps ``out.raw`` to the entropy per row."""
+    (rows); ``entropy`` maps ``out.raw`` to the entropy per row; ``objective`` replaces
+    ``cfg``'s surrogate (a population's members may each have their own)."""
     adv = mb.adv
     if cfg.adv_norm == "minibatch" and len(mb) > 1:
         adv = (adv - adv.mean(-1, keepdim=True)) / (adv.std(-1, keepdim=True) + 1e-8)
     ratio = torch.exp(out.logp - mb.logp_old)
-    objective = surrogate_objective(
-        cfg.method, ratio, adv, cfg.eps, cfg.beta, cfg.eta, cfg.rpe_form
-    )
-    policy_loss = -objective.mean(-1)
+    objective_of = objective if objective is not None else config_objective(cfg)
+    policy_loss = -objective_of(ratio, adv).mean(-1)
     v = out.value
     if cfg.clip_vf is not None:
         v_clip = mb.v_old + torch.clamp(v - mb.v_old, -cfg.clip_vf, cfg.clip_vf)

@@ -54,7 +54,7 @@ from .learner import (
     scheduled_lr,
     update_stats,
 )
-from .loss import LossMetrics, NetOutputs, loss_terms
+from .loss import LossMetrics, NetOutputs, Objective, config_objective, loss_terms
 from .model import ActorCritic
 from .normalize import StackedNormalizer
 from .stacked import StackedActorCritic, StackedAdam
@@ -70,7 +70,8 @@ SHARED_FIELDS: tuple[str, ...] = (
 """:class:`BatchConfig` fields every member of a population shares: the task, the shape
 of the rollouts, minibatches and networks, and what is normalised."""
 
-_LOSS_FIELDS = ("method", "eps", "beta", "eta", "rpe_form", "vf_coef", "ent_coef", "clip_vf")
+_SURROGATE_FIELDS = ("method", "eps", "beta", "eta", "rpe_form")
+_LOSS_FIELDS = ("vf_coef", "ent_coef", "clip_vf")
 _GAE_FIELDS = ("gamma", "gae_lambda", "bootstrap_truncated")
 
 
@@ -130,6 +131,31 @@ class _Minibatches:
 
 
 @dataclass(frozen=True)
+class _LossGroup:
+    """Members that share loss weights and value clipping (one :func:`loss_terms` call)."""
+
+    cfg: BatchConfig
+    """A member's config (for the weights, value clipping and advantage normalisation)."""
+    rows: Tensor | None
+    """The members, or None for every slot."""
+    objective: Objective
+    """The surrogate of every member of the group, on the group's rows."""
+
+
+def _grouped_objective(parts: list[tuple[Objective, Tensor]]) -> Objective:
+    """One objective over a group's rows from the objectives of its subgroups (``parts``:
+    each with its rows within the group)."""
+
+    def objective(ratio: Tensor, adv: Tensor) -> Tensor:
+        out = ratio.new_zeros(ratio.shape)
+        for fn, rows in parts:
+            out = out.index_put((rows,), fn(ratio[rows], adv[rows]))
+        return out
+
+    return objective
+
+
+@dataclass(frozen=True)
 class _StepSettings:
     """What the minibatch steps of one update need of each member, gathered once."""
 
@@ -143,7 +169,7 @@ class _StepSettings:
     """``[K]`` whether a member's gradient is not clipped (or the slot is free)."""
     target_kl: dict[int, float]
     """target_kl of the members that have one."""
-    loss_groups: dict[tuple[int, ...], list[tuple[BatchConfig, Tensor | None]]]
+    loss_groups: dict[tuple[int, ...], list[_LossGroup]]
     """Loss groups by set of active members (filled as they are needed)."""
 
 
@@ -548,22 +574,24 @@ class BatchPopulation:
     def _losses(
         self, out: NetOutputs, mb: Minibatch, members: list[int], settings: _StepSettings
     ) -> tuple[Tensor, LossMetrics]:
-        """Every member's loss ``[K]`` (zero for the others) and the metrics, one
-        :func:`loss_terms` call per group of equal loss settings."""
+        """Every member's loss ``[K]`` (zero for the others) and the metrics: one
+        :func:`loss_terms` call per group of equal loss weights and value clipping, each with
+        the surrogate of every subgroup of equal surrogate settings on its rows."""
         key = tuple(members)
         if key not in settings.loss_groups:
-            settings.loss_groups[key] = self._groups(members, _LOSS_FIELDS)
+            settings.loss_groups[key] = self._loss_groups(members)
         groups = settings.loss_groups[key]
-        if len(groups) == 1 and groups[0][1] is None:
-            return loss_terms(out, mb, groups[0][0], self.model.entropy)
+        if len(groups) == 1 and groups[0].rows is None:
+            return loss_terms(out, mb, groups[0].cfg, self.model.entropy, groups[0].objective)
         K = self.capacity
         losses = torch.zeros(K)
         policy, value = torch.zeros(K), torch.zeros(K)
         ratio, adv = torch.ones(mb.adv.shape), torch.zeros(mb.adv.shape)
-        for cfg, rows in groups:
+        for g in groups:
+            rows = g.rows
             assert rows is not None
             part = NetOutputs(out.logp[rows], out.raw[rows], out.value[rows])
-            loss, m = loss_terms(part, mb.members(rows), cfg, self.model.entropy)
+            loss, m = loss_terms(part, mb.members(rows), g.cfg, self.model.entropy, g.objective)
             losses = losses.index_put((rows,), loss)
             policy[rows], value[rows], ratio[rows], adv[rows] = (
                 m.policy_loss,
@@ -572,6 +600,22 @@ class BatchPopulation:
                 m.adv.detach(),
             )
         return losses, LossMetrics(policy, value, ratio, adv, out.raw)
+
+    def _loss_groups(self, members: list[int]) -> list[_LossGroup]:
+        """``members`` grouped by loss weights and value clipping, each group's surrogate
+        one function over the group's rows (per subgroup of equal surrogate settings)."""
+        out = []
+        for cfg, rows in self._groups(members, _LOSS_FIELDS):
+            group = members if rows is None else [int(k) for k in rows]
+            subgroups = self._groups(group, _SURROGATE_FIELDS)
+            if len(subgroups) == 1:
+                out.append(_LossGroup(cfg, rows, config_objective(subgroups[0][0])))
+                continue
+            local = {k: i for i, k in enumerate(group)}
+            parts = [(config_objective(c), torch.tensor([local[int(k)] for k in r]))
+                     for c, r in subgroups if r is not None]  # fmt: skip
+            out.append(_LossGroup(cfg, rows, _grouped_objective(parts)))
+        return out
 
     def _stop_past_target_kl(
         self, m: LossMetrics, book: _Minibatches, settings: _StepSettings
