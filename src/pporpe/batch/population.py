@@ -57,7 +57,7 @@ from .learner import (
 from .loss import LossMetrics, NetOutputs, Objective, config_objective, loss_terms
 from .model import ActorCritic
 from .normalize import StackedNormalizer
-from .stacked import StackedActorCritic, StackedAdam
+from .stacked import FixedScale, StackedActorCritic, StackedAdam
 from .vecenv import step_same_step
 
 __all__ = ["SHARED_FIELDS", "BatchPopulation", "Member", "MemberReport", "check_member"]
@@ -211,6 +211,7 @@ class BatchPopulation:
         self.ep_len = np.zeros((K, N), dtype=np.int64)
         self.members: list[Member | None] = [None] * K
         self._noise_buffer = torch.zeros(K, N, template.act_dim)
+        self._noise_rows = self._noise_buffer.unbind(0)
         n = cfg.rollout_size
         self._diag_ratio = torch.zeros(K, cfg.n_epochs * n)
         self._diag_adv = torch.zeros(K, cfg.n_epochs * n)
@@ -349,8 +350,10 @@ class BatchPopulation:
         finished: dict[int, list[FinishedEpisode]] = {k: [] for k in busy}
         errors: dict[int, str] = {}
         obs = torch.from_numpy(self.obs)
+        fixed = self.model.fixed_scale(self.cfg.n_envs)
         for t in range(self.cfg.n_steps):
-            obs = self._rollout_step(t, obs, [k for k in busy if k not in errors], finished, errors)
+            going = [k for k in busy if k not in errors]
+            obs = self._rollout_step(t, obs, fixed, going, finished, errors)
         self.obs = obs.numpy()
         self._advantages(self.model.value(obs), [k for k in busy if k not in errors])
         return finished, errors
@@ -359,6 +362,7 @@ class BatchPopulation:
         self,
         t: int,
         obs: Tensor,
+        fixed: FixedScale | None,
         busy: list[int],
         finished: dict[int, list[FinishedEpisode]],
         errors: dict[int, str],
@@ -366,11 +370,10 @@ class BatchPopulation:
         """Act in every busy member's environments at ``obs`` ``[K, N, obs_dim]``, store
         step ``t``; return the next normalised observations."""
         model, buf, K, N = self.model, self.buffer, self.capacity, self.cfg.n_envs
-        raw = model.raw(obs)
-        u = model.sample(raw, self._noise(busy))
+        u, logp = model.act(obs, self._noise(busy), fixed)
         buf.obs[t] = obs.reshape(K * N, -1)
         buf.u[t] = u.reshape(K * N, -1)
-        buf.logp[t] = model.head.log_prob(raw, u).reshape(K * N)
+        buf.logp[t] = logp.reshape(K * N)
         buf.values[t] = model.value(obs).reshape(K * N)
         action = model.to_action(u).numpy()
         step = self._step_envs(busy, action, errors)
@@ -391,9 +394,9 @@ class BatchPopulation:
     def _noise(self, busy: list[int]) -> Tensor:
         """Every busy member's standard normal draws ``[N, act_dim]`` from its own stream,
         stacked ``[K, N, act_dim]`` (a free slot's rows are left as they are)."""
-        noise = self._noise_buffer
+        noise, rows = self._noise_buffer, self._noise_rows
         for k in busy:
-            torch.randn(noise.shape[1:], generator=self._member(k).generator, out=noise[k])
+            torch.randn(noise.shape[1:], generator=self._member(k).generator, out=rows[k])
         return noise
 
     def _step_envs(self, busy: list[int], action: np.ndarray, errors: dict[int, str]) -> _EnvStep:

@@ -13,16 +13,18 @@ step count, learning rate and epsilon, so that row k follows exactly what
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from ..nn.mlp import flat_views
+from ..nn.policies import NormalHead
 from ..nn.stacked import StackedMLP, stacked_views
 from .model import ActorCritic
 
-__all__ = ["StackedActorCritic", "StackedAdam"]
+__all__ = ["FixedScale", "StackedActorCritic", "StackedAdam"]
 
 
 class StackedActorCritic:
@@ -104,6 +106,31 @@ class StackedActorCritic:
         loc, scale = self.head.split(raw)
         return loc + scale * noise
 
+    def fixed_scale(self, rows: int) -> FixedScale | None:
+        """With a state-independent scale, the scale ``[K, rows, act_dim]`` and its log as
+        :meth:`act` computes them at every step (from the same layout: the expanded row of
+        :meth:`raw`); they stay the same while the parameters do (a rollout). None with a
+        scale that the network outputs."""
+        if not self.global_scale:
+            return None
+        raw = self.raw(torch.zeros(self.members, rows, self.template.obs_dim))
+        _, scale = self.head.split(raw)
+        return FixedScale(scale, torch.log(scale))
+
+    def act(self, obs: Tensor, noise: Tensor, fixed: FixedScale | None) -> tuple[Tensor, Tensor]:
+        """``(u, log pi(u|s))`` for ``u = loc + scale * noise``, as a run alone's rollout
+        step computes them (its ``sample`` and ``head.log_prob``); ``fixed``: the scale of
+        :meth:`fixed_scale` (None: computed from the network's output)."""
+        head = self.head
+        assert isinstance(head, NormalHead)
+        if fixed is None:
+            loc, scale = head.split(self.raw(obs))
+            log_scale = torch.log(scale)
+        else:
+            loc, scale, log_scale = self._policy_fn(obs), fixed.scale, fixed.log_scale
+        u = loc + scale * noise
+        return u, head.log_prob_at(loc, scale, log_scale, u)
+
     def to_action(self, u: Tensor) -> Tensor:
         """Map u into the action box (the members share the bounds and the map)."""
         return self.template.to_action(u)
@@ -111,6 +138,16 @@ class StackedActorCritic:
     def finite(self) -> Tensor:
         """``[K]``: whether every parameter of each member is finite."""
         return torch.isfinite(self.theta).all(dim=1)
+
+
+@dataclass(frozen=True)
+class FixedScale:
+    """A state-independent policy scale over a rollout (:meth:`StackedActorCritic.fixed_scale`)."""
+
+    scale: Tensor
+    """``[K, rows, act_dim]``."""
+    log_scale: Tensor
+    """Its log."""
 
 
 class StackedAdam:

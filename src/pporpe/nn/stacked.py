@@ -31,6 +31,7 @@ import functools
 import math
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
@@ -239,7 +240,8 @@ class StackedMLP:
     ``parameters()`` order, bound at construction), evaluated on inputs ``[K, B, in]``.
 
     Without gradient, a ``"loop"`` layer is K ``torch.addmm`` calls (what ``F.linear``
-    calls) on per-member views made once, written into one output tensor.
+    calls) from and into buffers whose per-member views are made once per input shape
+    (making K views costs about as much as the K products).
     """
 
     def __init__(self, net: FlatMLP, params: list[Tensor]) -> None:
@@ -252,6 +254,7 @@ class StackedMLP:
                 continue
             w, b = params[op.index].detach(), params[op.index + 1].detach()
             self._members.append((tuple(t.t() for t in w.unbind(0)), b.unbind(0)))
+        self._buffers: dict[tuple[int, int, int], _LoopBuffers] = {}
 
     def __call__(self, x: Tensor) -> Tensor:
         params, grad = self.params, torch.is_grad_enabled()
@@ -276,11 +279,31 @@ class StackedMLP:
 
     def _loop_no_grad(self, i: int, x: Tensor, fan_out: int) -> Tensor:
         """Linear layer ``i`` member by member (``F.linear``'s ``addmm``), no gradient."""
-        out = x.new_empty(x.shape[0], x.shape[1], fan_out)
+        key = (i, x.shape[1], x.shape[2])
+        if key not in self._buffers:
+            self._buffers[key] = _LoopBuffers.make(x, fan_out)
+        buf = self._buffers[key]
+        buf.x.copy_(x)
         wts, bs = self._members[i]
-        for k, (xk, wt, b) in enumerate(zip(x.unbind(0), wts, bs, strict=True)):
-            torch.addmm(b, xk, wt, out=out[k])
-        return out
+        for xk, wt, b, out in zip(buf.x_rows, wts, bs, buf.out_rows, strict=True):
+            torch.addmm(b, xk, wt, out=out)
+        return buf.out.clone()
+
+
+@dataclass(frozen=True)
+class _LoopBuffers:
+    """The input and output of a member-by-member layer, with their per-member views."""
+
+    x: Tensor
+    x_rows: tuple[Tensor, ...]
+    out: Tensor
+    out_rows: tuple[Tensor, ...]
+
+    @staticmethod
+    def make(like: Tensor, fan_out: int) -> _LoopBuffers:
+        x = torch.empty_like(like, memory_format=torch.contiguous_format)
+        out = like.new_empty(like.shape[0], like.shape[1], fan_out)
+        return _LoopBuffers(x, x.unbind(0), out, out.unbind(0))
 
 
 def backward_quietly(loss: Tensor) -> None:
