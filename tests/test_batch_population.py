@@ -176,15 +176,17 @@ def test_members_with_mixed_settings_equal_their_runs_alone_bit_for_bit() -> Non
 
 def test_hopper_sized_members_equal_their_runs_alone_bit_for_bit() -> None:
     """Hopper-v4 with CleanRL's network (64 x 64 tanh, value clipping, linear annealing):
-    PPO, PPO-RPE and PPO-RB members equal their runs alone over three updates."""
+    twelve PPO, PPO-RPE and PPO-RB members (enough that the stacked policy head's tensors
+    fill vector registers where a run alone's do not) equal their runs alone over two
+    updates."""
     pytest.importorskip("mujoco")
     base = BatchConfig(
-        env="Hopper-v4", n_steps=128, batch_size=64, n_epochs=2, total_steps=128 * 3,
+        env="Hopper-v4", n_steps=128, batch_size=64, n_epochs=2, total_steps=128 * 2,
         clip_vf=0.2, lr_schedule="linear", eval_episodes=0,
     )  # fmt: skip
-    cfgs = [replace(base, seed=0), replace(base, seed=1, method="rpe"),
-            replace(base, seed=2, method="rb")]  # fmt: skip
-    check_population_against_solo(cfgs, 3)
+    methods = ("ppo", "rpe", "rb")
+    cfgs = [replace(base, seed=s, method=methods[s % 3]) for s in range(12)]
+    check_population_against_solo(cfgs, 2)
 
 
 def test_a_member_continues_a_run_alone_and_a_run_alone_continues_a_member() -> None:
