@@ -663,6 +663,69 @@ def with_run_folder_columns(root: Path) -> str:
     return text[:start] + block + text[end + len(COLUMNS_END) :]
 
 
+# --- The batch population's measurements (docs/batch.md) --------------------------------
+
+POPULATION_START = (
+    "<!-- population: written by python docs/generate.py from "
+    "benchmarks/results/batch_population.json; edit the script, not here -->"
+)
+POPULATION_END = "<!-- end of population -->"
+OPTION_NAMES = {
+    "separate": "K runs one after another",
+    "vmap": "`torch.func` vmap(grad)",
+    "stacked": "stacked (the population)",
+    "stacked-bmm": "stacked, every layer `baddbmm`",
+}
+
+
+def population_option_table(data: dict[str, Any]) -> list[str]:
+    """µs per member of one minibatch step, by option (columns) and K (rows)."""
+    cost = {(o["option"], o["K"]): o["us_per_member_step"] for o in data["options"]}
+    options = [o for o in OPTION_NAMES if any(key[0] == o for key in cost)]
+    rows = [[str(k), *(f"{cost[(o, k)]:.0f}" if (o, k) in cost else "-" for o in options)]
+            for k in sorted({k for _, k in cost})]  # fmt: skip
+    same = data["equal_to_runs_alone"]
+    rows.append(["the bits of a run alone", *("yes" if same.get(o) else "no" for o in options)])
+    return table(["K", *(OPTION_NAMES[o] for o in options)], rows)
+
+
+def population_run_table(data: dict[str, Any]) -> list[str]:
+    """Whole runs: member-steps/s, the ratio to a run alone (its range over rounds) and
+    the rollout and update costs."""
+    names = {"alone": "a run alone", "envs": "the environments alone"}
+    rows = []
+    for r in data["runs"]:
+        name = names.get(r["variant"], r["variant"].replace("=", " = "))
+        if r["variant"] == "envs":
+            name += f" (K = {r['members']})"
+        spread = r["rounds_ratio_to_alone"]
+        ratio = f"{r['ratio_to_alone']:.2f}".rstrip("0").rstrip(".")
+        if spread:
+            ratio += f" ({min(spread):.2f}-{max(spread):.2f})"
+        cost = f"{r['rollout_us_per_member_step']:.0f}"
+        if r["update_us_per_member_step"]:
+            cost += f" + {r['update_us_per_member_step']:.0f}"
+        rows.append([name, f"{r['member_steps_per_s']:.0f}", ratio, cost])
+    head = ["", "member-steps/s", "against a run alone (rounds)",
+            "rollout + update, µs per member-step"]  # fmt: skip
+    return table(head, rows)
+
+
+def with_population_tables(root: Path) -> str:
+    """docs/batch.md with the two tables of the batch population's benchmark rewritten
+    (the first pair of markers: the options; the second: whole runs)."""
+    data = read_json(root, "benchmarks/results/batch_population.json")
+    text = (root / "docs" / "batch.md").read_text(encoding="utf-8")
+    for block in (population_option_table(data), population_run_table(data)):
+        start = text.find(POPULATION_START + "\n|")  # the first block not yet rewritten
+        end = text.find(POPULATION_END, start)
+        if start < 0 or end < start:
+            raise ValueError("docs/batch.md lacks the population markers")
+        new = "\n".join([POPULATION_START + "\x00", *block, POPULATION_END])
+        text = text[:start] + new + text[end + len(POPULATION_END) :]
+    return text.replace(POPULATION_START + "\x00", POPULATION_START)
+
+
 PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
@@ -673,6 +736,7 @@ PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/engines.md": engines_page,
     "README.md": with_readme_results,
     "docs/run-folders.md": with_run_folder_columns,
+    "docs/batch.md": with_population_tables,
 }
 """Each generated file (relative to the repository root) and the function that writes it."""
 

@@ -26,6 +26,8 @@ SOURCES = [
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
     "docs/run-folders.md",
+    "docs/batch.md",
+    "benchmarks/results/batch_population.json",
     "src/pporpe/runs/logger.py",
     "src/pporpe/runs/kinds.py",
 ]
@@ -60,11 +62,15 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
     columns = folders.read_text()
     start, end = columns.index(gen.COLUMNS_START), columns.index(gen.COLUMNS_END)
     folders.write_text(columns[:start] + gen.COLUMNS_START + "\n" + columns[end:])
+    batch = tmp_path / "docs/batch.md"
+    population = batch.read_text()
+    batch.write_text(population.replace("| 30 |", "| 31 |"))  # a hand edit of a table
     assert sorted(gen.stale(tmp_path)) == sorted(gen.PAGES)
     assert gen.main(["--root", str(tmp_path)]) == 0
     assert gen.stale(tmp_path) == []
     assert readme.read_text() == text  # the table is back, the rest untouched
     assert folders.read_text() == columns  # and the columns
+    assert batch.read_text() == population  # and the population's tables
     report = tmp_path / "results/paper/REPORT.md"
     report.write_text(report.read_text().replace("0.58 [0.39, 0.75]", "0.61 [0.40, 0.77]"))
     capsys.readouterr()

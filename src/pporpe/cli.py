@@ -358,8 +358,9 @@ def _add_reproduce(sub: Any) -> None:
         type=_positive_int,
         default=None,
         help=(
-            f"online runs of one task trained at once by one worker (default "
-            f"{DEFAULT_POPULATION}, the fused engine's best; 30 for the torch engine)"
+            f"runs of one task and network shape (online or batch) trained at once by one "
+            f"worker (default {DEFAULT_POPULATION}, the fused online engine's best; 30 for "
+            f"the torch engine; batch runs gain up to 30 too)"
         ),
     )
     rp.add_argument(

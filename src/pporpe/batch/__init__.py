@@ -8,6 +8,8 @@ PPO-RPE surrogates: one word apart (``BatchConfig(method="rb")``).
 * :mod:`.loss`       the minibatch loss, a pure function returning (loss, metrics);
 * :mod:`.learner`    :class:`BatchLearner`: acting, learning, the test-time policy;
 * :mod:`.vecenv`     vector environments with replayable sub-environments;
+* :mod:`.stacked`    K runs' networks and Adam states as the rows of one tensor;
+* :mod:`.population` :class:`BatchPopulation`: K runs trained in lockstep in one process;
 * :mod:`.kind`       the learner kind ``"batch"`` and :func:`train_batch`.
 """
 
@@ -18,6 +20,7 @@ from .kind import BatchResult, evaluate_learner, load_batch_learner, train_batch
 from .learner import BatchLearner, UpdateStats
 from .model import ActorCritic
 from .normalize import Normalizer, RunningMeanStd
+from .population import BatchPopulation
 from .vecenv import make_vec_env
 
 __all__ = [
@@ -25,6 +28,7 @@ __all__ = [
     "ActorCritic",
     "BatchConfig",
     "BatchLearner",
+    "BatchPopulation",
     "BatchResult",
     "FinishedEpisode",
     "Minibatch",

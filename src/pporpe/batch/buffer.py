@@ -57,9 +57,10 @@ class FinishedEpisode:
 class Minibatch:
     """Rows of a rollout, flattened over ``[n_steps, n_envs]``, by name.
 
-    The fields are column views of one packed ``[n, obs_dim + act_dim + 4]`` tensor, so a
-    shuffled epoch is one gather (:meth:`index`) and a minibatch one slice (:meth:`slice`);
-    the column layout is known here only.
+    The fields are column views of one packed ``[..., n, obs_dim + act_dim + 4]`` tensor,
+    so a shuffled epoch is one gather (:meth:`index`) and a minibatch one slice
+    (:meth:`slice`); the column layout is known here only. A population's minibatches
+    have a leading member dimension (``[K, n, ...]``, :meth:`stack`, :meth:`index_rows`).
     """
 
     obs: Tensor
@@ -79,32 +80,51 @@ class Minibatch:
 
     @staticmethod
     def _from_packed(packed: Tensor, obs_dim: int) -> Minibatch:
-        d, a = obs_dim, packed.shape[1] - obs_dim - 4
+        d, a = obs_dim, packed.shape[-1] - obs_dim - 4
         return Minibatch(
-            obs=packed[:, :d],
-            u=packed[:, d : d + a],
-            logp_old=packed[:, d + a],
-            adv=packed[:, d + a + 1],
-            ret=packed[:, d + a + 2],
-            v_old=packed[:, d + a + 3],
+            obs=packed[..., :d],
+            u=packed[..., d : d + a],
+            logp_old=packed[..., d + a],
+            adv=packed[..., d + a + 1],
+            ret=packed[..., d + a + 2],
+            v_old=packed[..., d + a + 3],
             packed=packed,
         )
 
     @staticmethod
-    def from_buffer(buf: RolloutBuffer, adv: Tensor) -> Minibatch:
-        """The whole rollout as one flat batch, with ``adv`` as its advantages."""
-        n = buf.logp.numel()
-        columns = [buf.obs.reshape(n, -1), buf.u.reshape(n, -1)]
-        columns += [t.reshape(n, 1) for t in (buf.logp, adv, buf.returns, buf.values)]
+    def from_buffer(buf: RolloutBuffer, adv: Tensor, envs: slice = slice(None)) -> Minibatch:
+        """The whole rollout of the sub-environments ``envs`` (all by default) as one flat
+        batch, with ``adv`` as its advantages."""
+        obs, u, logp = buf.obs[:, envs], buf.u[:, envs], buf.logp[:, envs]
+        n = logp.numel()
+        columns = [obs.reshape(n, -1), u.reshape(n, -1)]
+        rest = (logp, adv, buf.returns[:, envs], buf.values[:, envs])
+        columns += [t.reshape(n, 1) for t in rest]
         return Minibatch._from_packed(torch.cat(columns, dim=1), buf.obs.shape[-1])
 
+    @staticmethod
+    def stack(batches: list[Minibatch]) -> Minibatch:
+        """Minibatches of equal size, one per member, as one ``[K, n, ...]`` minibatch."""
+        packed = torch.stack([b.packed for b in batches])
+        return Minibatch._from_packed(packed, batches[0].obs.shape[-1])
+
     def __len__(self) -> int:
-        return int(self.packed.shape[0])
+        """Rows (per member)."""
+        return int(self.packed.shape[-2])
 
     def index(self, rows: Tensor) -> Minibatch:
         """The rows ``rows`` (a gather: e.g. one shuffled epoch)."""
-        return Minibatch._from_packed(self.packed[rows], self.obs.shape[1])
+        return Minibatch._from_packed(self.packed[rows], self.obs.shape[-1])
+
+    def index_rows(self, rows: Tensor) -> Minibatch:
+        """Member k's rows ``rows[k]`` of a ``[K, n, ...]`` minibatch (one gather for all)."""
+        members = torch.arange(rows.shape[0]).unsqueeze(1)
+        return Minibatch._from_packed(self.packed[members, rows], self.obs.shape[-1])
+
+    def members(self, rows: Tensor) -> Minibatch:
+        """The members ``rows`` of a ``[K, n, ...]`` minibatch (a gather)."""
+        return Minibatch._from_packed(self.packed[rows], self.obs.shape[-1])
 
     def slice(self, start: int, stop: int) -> Minibatch:
         """Rows ``start:stop`` (views)."""
-        return Minibatch._from_packed(self.packed[start:stop], self.obs.shape[1])
+        return Minibatch._from_packed(self.packed[..., start:stop, :], self.obs.shape[-1])

@@ -1,5 +1,6 @@
-"""Batch PPO as a learner kind of the run loop (:class:`BatchTrainer`, registered as
-``"batch"``), and :func:`train_batch`, a whole batch run through that loop."""
+"""Batch PPO as a learner kind of the run loop (:class:`BatchTrainer` for one run,
+:class:`BatchPopulationTrainer` for K runs in lockstep; registered as ``"batch"``), and
+:func:`train_batch`, a whole batch run through that loop."""
 
 from __future__ import annotations
 
@@ -25,12 +26,15 @@ from ..runs.kinds import (
     register_kind,
 )
 from ..runs.loop import RunResult, train
+from .buffer import FinishedEpisode
 from .config import BatchConfig, zoo_config
 from .learner import BatchLearner, UpdateStats
+from .population import SHARED_FIELDS, BatchPopulation
 
 __all__ = [
     "BATCH",
     "BatchKind",
+    "BatchPopulationTrainer",
     "BatchResult",
     "BatchTrainer",
     "evaluate_learner",
@@ -95,37 +99,15 @@ class BatchTrainer:
         return {"total_steps": learner.total_steps, "chunks": updates, "updates": updates}
 
     def advance(self) -> dict[int, Progress]:
-        """Collect one rollout and learn from it.
-
-        Episodes that end during rollout k get the diagnostics of update k, the update
-        that learns from them, without a trace decay: batch PPO has no eligibility traces.
-        """
+        """Collect one rollout and learn from it (see :func:`_progress`)."""
         learner = self._learner(0)
         try:
             finished = learner.collect_rollouts()
             stats = learner.train()
-            if not math.isfinite(float(stats.policy_loss) + float(stats.value_loss)):
-                raise NonFiniteError(f"non-finite loss at update {learner.updates}")
         except NonFiniteError as exc:
             return {0: Progress([], error=str(exc))}
         self.last_stats = stats
-        diagnostics = SurrogateDiagnostics(
-            reg_amount=float(stats.reg_amount),
-            past_threshold=float(stats.past_threshold),
-            ratio_dev=float(stats.ratio_dev),
-        )
-        episodes = [
-            Episode(ep.total_steps, ep.ret, ep.length, diagnostics=diagnostics) for ep in finished
-        ]
-        return {
-            0: Progress(
-                episodes=episodes,
-                checkpoint_due=learner.updates % learner.cfg.checkpoint_every == 0,
-                bar_advance=learner.cfg.rollout_size,
-                scalars=stats.as_dict(),
-                total_steps=learner.total_steps,
-            )
-        }
+        return {0: _progress(learner, stats, finished)}
 
     def state(self, slot: int) -> dict[str, Any]:
         """The learner (with its environments' replay records) and the torch RNG state."""
@@ -138,6 +120,110 @@ class BatchTrainer:
     def policy(self, slot: int) -> Callable[[Any], np.ndarray]:
         """The policy's location, bounded, with frozen observation statistics."""
         return self._learner(slot).act_deterministic
+
+
+def _progress(
+    learner: BatchLearner, stats: UpdateStats, episodes: list[FinishedEpisode]
+) -> Progress:
+    """The report of one update of a run: its episodes with the update's diagnostics
+    (episodes that end during rollout k get those of update k, the update that learns from
+    them, without a trace decay: batch PPO has no eligibility traces); an error when its
+    losses are not finite."""
+    if not math.isfinite(float(stats.policy_loss) + float(stats.value_loss)):
+        return Progress([], error=f"non-finite loss at update {learner.updates}")
+    diagnostics = SurrogateDiagnostics(
+        reg_amount=float(stats.reg_amount),
+        past_threshold=float(stats.past_threshold),
+        ratio_dev=float(stats.ratio_dev),
+    )
+    return Progress(
+        episodes=[
+            Episode(ep.total_steps, ep.ret, ep.length, diagnostics=diagnostics) for ep in episodes
+        ],
+        checkpoint_due=learner.updates % learner.cfg.checkpoint_every == 0,
+        bar_advance=learner.cfg.rollout_size,
+        scalars=stats.as_dict(),
+        total_steps=learner.total_steps,
+    )
+
+
+class BatchPopulationTrainer:
+    """Up to ``capacity`` batch runs of one shape trained in lockstep by a
+    :class:`~pporpe.batch.population.BatchPopulation`; a unit of work is one update of
+    every busy run. A run's checkpoint state is that of a run alone (:class:`BatchTrainer`),
+    so a run moves between the two."""
+
+    def __init__(self, cfg: BatchConfig, capacity: int) -> None:
+        self.capacity = capacity
+        self.population = BatchPopulation(cfg, capacity)
+        self.last_stats: dict[int, UpdateStats] = {}
+
+    def start(self, slot: int, cfg: BatchConfig, state: dict[str, Any] | None) -> None:
+        """Build the run's learner and environments (seeded as a run alone), then restore
+        ``state``."""
+        self.population.start(slot, cfg, state)
+
+    def stop(self, slot: int) -> None:
+        """Close the run's environments and free the slot."""
+        self.population.stop(slot)
+        self.last_stats.pop(slot, None)
+
+    def compact(self, keep: list[int]) -> None:
+        """Move the runs of slots ``keep`` into a population of ``len(keep)`` slots (their
+        state written back and reloaded exactly, environments and streams kept)."""
+        old = self.population
+        members = [old.release(k) for k in keep]
+        old.close()
+        self.population = BatchPopulation(old.cfg, len(keep))
+        for j, member in enumerate(members):
+            self.population.admit(j, member)
+        self.capacity = len(keep)
+        self.last_stats = {}
+
+    def close(self) -> None:
+        """Close every run's environments."""
+        self.population.close()
+
+    def finished(self, slot: int) -> bool:
+        """Whether every update of the run is done."""
+        return self.population.finished(slot)
+
+    def bar_position(self, slot: int) -> int:
+        """Environment steps done."""
+        return self.population.learner(slot).total_steps
+
+    def counters(self, slot: int) -> dict[str, int]:
+        """Updates (the unit of work) and environment steps done."""
+        learner = self.population.learner(slot)
+        updates = learner.updates
+        return {"total_steps": learner.total_steps, "chunks": updates, "updates": updates}
+
+    def advance(self) -> dict[int, Progress]:
+        """One rollout and one update of every busy run."""
+        reports: dict[int, Progress] = {}
+        for k, report in self.population.update().items():
+            learner = self.population.learner(k)
+            if report.error is not None or report.stats is None:
+                reports[k] = Progress([], error=report.error or "no update")
+                continue
+            self.last_stats[k] = report.stats
+            reports[k] = _progress(learner, report.stats, report.episodes)
+        return reports
+
+    def state(self, slot: int) -> dict[str, Any]:
+        """The run's state as a run alone saves it."""
+        return self.population.member_state(slot)
+
+    def parameters_finite(self, slot: int) -> bool:
+        """Whether every parameter of the run is finite."""
+        return self.population.parameters_finite(slot)
+
+    def policy(self, slot: int) -> Callable[[Any], np.ndarray]:
+        """A standalone copy of the run's deterministic test-time policy."""
+        state = {"learner": self.population.member_state(slot)["learner"]}
+        learner = _policy_learner(self.population.learner(slot).cfg, state)
+        learner.close()
+        return learner.act_deterministic
 
 
 def _policy_learner(cfg: BatchConfig, state: dict[str, Any]) -> BatchLearner:
@@ -157,17 +243,25 @@ class BatchKind:
     name = "batch"
     config_type = BatchConfig
 
-    def make_trainer(self, cfg: BatchConfig, capacity: int) -> BatchTrainer:
-        """A trainer of one slot (``capacity`` is ignored)."""
-        return BatchTrainer()
+    def make_trainer(
+        self, cfg: BatchConfig, capacity: int
+    ) -> BatchTrainer | BatchPopulationTrainer:
+        """A trainer of one run (``capacity`` 1), or a population of ``capacity`` slots for
+        runs shaped like ``cfg``."""
+        if capacity <= 1:
+            return BatchTrainer()
+        return BatchPopulationTrainer(cfg, capacity)
 
     def budget(self, cfg: BatchConfig) -> tuple[int, str]:
         """Environment steps, in whole rollouts."""
         return cfg.n_updates * cfg.rollout_size, "step"
 
     def pack_key(self, cfg: BatchConfig) -> Any:
-        """Batch runs do not share a trainer: every run is its own key."""
-        return id(cfg)
+        """What the members of one population share (:data:`SHARED_FIELDS`); runs with
+        another policy than ``"normal"`` are never packed (each is its own key)."""
+        if cfg.policy != "normal":
+            return ("alone", id(cfg))
+        return tuple(getattr(cfg, name) for name in SHARED_FIELDS)
 
     def load_policy(self, cfg: BatchConfig, state: dict[str, Any]) -> Policy:
         """The trained policy of a checkpoint, with its frozen observation statistics."""

@@ -77,7 +77,14 @@ from .model import ActorCritic
 from .normalize import Normalizer
 from .vecenv import VecEnv, make_vec_env
 
-__all__ = ["BatchLearner", "UpdateStats"]
+__all__ = [
+    "BatchLearner",
+    "UpdateRecord",
+    "UpdateStats",
+    "rollout_advantages",
+    "scheduled_lr",
+    "update_stats",
+]
 
 
 @dataclass(frozen=True)
@@ -111,6 +118,94 @@ class UpdateStats:
     def as_dict(self) -> dict[str, float]:
         """Python floats (synchronises; for logging only)."""
         return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """What one update measured, per minibatch and per sample, for :func:`update_stats`."""
+
+    mb_stats: Tensor
+    """``[minibatches, 3]``: policy loss, value loss, gradient norm of every step."""
+    ratio: Tensor
+    """Density ratios of every sample of every epoch."""
+    adv: Tensor
+    """The advantages used with them."""
+    entropy: Tensor | None
+    """Mean entropy of the last minibatch's policy (None when no step was taken)."""
+    epochs: int
+    """Epochs run."""
+    lr: float
+    """Learning rate used."""
+
+
+@torch.no_grad()
+def update_stats(
+    cfg: BatchConfig, record: UpdateRecord, returns: Tensor, values: Tensor
+) -> UpdateStats:
+    """The :class:`UpdateStats` of one update from its record and the rollout's lambda-returns
+    and old values (the explained variance)."""
+    rows = record.mb_stats.shape[0]
+    means = record.mb_stats.mean(0) if rows else torch.full((3,), float("nan"))
+    ratio, adv = record.ratio, record.adv
+    nan = torch.tensor(float("nan"))
+    if rows and record.entropy is not None:
+        reg = regularization_amount(cfg.method, ratio, adv, cfg.eps, cfg.beta, cfg.eta)
+        reg_amount, past = reg.amount.mean(), reg.fraction_past_threshold
+        ratio_dev = (ratio - 1.0).abs().mean()
+        approx_kl = (ratio - 1.0 - torch.log(ratio)).mean()
+        entropy = record.entropy
+    else:
+        reg_amount = past = ratio_dev = torch.tensor(0.0)
+        approx_kl = entropy = nan
+    ret, val = returns.reshape(-1), values.reshape(-1)
+    var_ret = ret.var()
+    ev = torch.where(var_ret > 0, 1.0 - (ret - val).var() / var_ret, nan)
+    return UpdateStats(
+        policy_loss=means[0],
+        value_loss=means[1],
+        entropy=entropy,
+        approx_kl=approx_kl,
+        grad_norm=means[2],
+        reg_amount=reg_amount,
+        past_threshold=past,
+        ratio_dev=ratio_dev,
+        explained_variance=ev,
+        lr=torch.tensor(record.lr),
+        epochs=torch.tensor(record.epochs),
+    )
+
+
+def scheduled_lr(cfg: BatchConfig, updates: int) -> float:
+    """The learning rate of update ``updates`` (0-based) under the config's schedule."""
+    if cfg.lr_schedule == "linear":
+        return cfg.lr * max(0.0, 1.0 - updates / cfg.n_updates)
+    return cfg.lr
+
+
+def rollout_advantages(
+    buf: RolloutBuffer, last_value: Tensor, cfg: BatchConfig, cols: slice | Tensor = slice(None)
+) -> None:
+    """GAE advantages and lambda-returns of the filled buffer's columns ``cols`` (all by
+    default; a population's buffer holds every member's sub-environments side by side),
+    written into ``buf``; ``last_value``: V of the observations after the rollout."""
+    values, term, trunc = buf.values[:, cols], buf.terminated[:, cols], buf.truncated[:, cols]
+    # V of the state each step reached: the next step's V(s_{t+1}) unless the episode
+    # ended (then V(final obs) was stored for truncations; terminations ignore it)
+    nxt = torch.cat([values[1:], last_value[None]])
+    next_values = torch.where(term | trunc, buf.next_values[:, cols], nxt)
+    buf.next_values[:, cols] = next_values
+    adv, ret = compute_gae(
+        buf.rewards[:, cols],
+        values,
+        next_values,
+        term,
+        trunc,
+        cfg.gamma,
+        cfg.gae_lambda,
+        cfg.bootstrap_truncated,
+    )
+    buf.advantages[:, cols] = adv
+    buf.returns[:, cols] = ret
 
 
 class BatchLearner:
@@ -234,24 +329,7 @@ class BatchLearner:
 
     def _compute_advantages(self, last_value: Tensor) -> None:
         """GAE advantages and returns of the filled buffer (``last_value``: V after it)."""
-        cfg, buf = self.cfg, self.buffer
-        # V of the state each step reached: the next step's V(s_{t+1}) unless the episode
-        # ended (then V(final obs) was stored above for truncations; terminations ignore it)
-        nxt = torch.cat([buf.values[1:], last_value[None]])
-        ended = buf.terminated | buf.truncated
-        buf.next_values.copy_(torch.where(ended, buf.next_values, nxt))
-        adv, ret = compute_gae(
-            buf.rewards,
-            buf.values,
-            buf.next_values,
-            buf.terminated,
-            buf.truncated,
-            cfg.gamma,
-            cfg.gae_lambda,
-            cfg.bootstrap_truncated,
-        )
-        buf.advantages.copy_(adv)
-        buf.returns.copy_(ret)
+        rollout_advantages(self.buffer, last_value, self.cfg)
 
     @torch.no_grad()
     def act_deterministic(self, obs: Any) -> np.ndarray:
@@ -266,9 +344,7 @@ class BatchLearner:
     # -- learning ----------------------------------------------------------------------------
     def current_lr(self) -> float:
         """The learning rate of the next update under the schedule."""
-        if self.cfg.lr_schedule == "linear":
-            return self.cfg.lr * max(0.0, 1.0 - self.updates / self.cfg.n_updates)
-        return self.cfg.lr
+        return scheduled_lr(self.cfg, self.updates)
 
     def train(self) -> UpdateStats:
         """One PPO update on the collected rollout: n_epochs of shuffled minibatches.
@@ -324,36 +400,15 @@ class BatchLearner:
     def _update_stats(
         self, rows: int, samples: int, epochs: int, lr: float, raw: Tensor
     ) -> UpdateStats:
-        cfg, buf = self.cfg, self.buffer
-        means = self._mb_stats[:rows].mean(0) if rows else torch.full((3,), float("nan"))
-        ratio = self._diag_ratio[:samples]
-        adv = self._diag_adv[:samples]
-        nan = torch.tensor(float("nan"))
-        if rows:
-            reg = regularization_amount(cfg.method, ratio, adv, cfg.eps, cfg.beta, cfg.eta)
-            reg_amount, past = reg.amount.mean(), reg.fraction_past_threshold
-            ratio_dev = (ratio - 1.0).abs().mean()
-            approx_kl = (ratio - 1.0 - torch.log(ratio)).mean()
-            entropy = self.model.entropy(raw).mean()
-        else:
-            reg_amount = past = ratio_dev = torch.tensor(0.0)
-            approx_kl = entropy = nan
-        ret, val = buf.returns.reshape(-1), buf.values.reshape(-1)
-        var_ret = ret.var()
-        ev = torch.where(var_ret > 0, 1.0 - (ret - val).var() / var_ret, nan)
-        return UpdateStats(
-            policy_loss=means[0],
-            value_loss=means[1],
-            entropy=entropy,
-            approx_kl=approx_kl,
-            grad_norm=means[2],
-            reg_amount=reg_amount,
-            past_threshold=past,
-            ratio_dev=ratio_dev,
-            explained_variance=ev,
-            lr=torch.tensor(lr),
-            epochs=torch.tensor(epochs),
+        record = UpdateRecord(
+            self._mb_stats[:rows],
+            self._diag_ratio[:samples],
+            self._diag_adv[:samples],
+            self.model.entropy(raw).mean() if rows else None,
+            epochs,
+            lr,
         )
+        return update_stats(self.cfg, record, self.buffer.returns, self.buffer.values)
 
     # -- state ---------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -8,7 +8,35 @@ import numpy as np
 
 from .config import BatchConfig
 
-__all__ = ["Normalizer", "RunningMeanStd"]
+__all__ = ["Normalizer", "RunningMeanStd", "StackedNormalizer", "merge_moments"]
+
+
+def merge_moments(
+    mean: np.ndarray, var: np.ndarray, count: Any, x: np.ndarray, axis: int
+) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Running ``(mean, var, count)`` merged with the samples of ``x`` along ``axis``
+    (float64; ``count`` a float, or an array broadcasting against ``mean``: one count per
+    member of a population)."""
+    n = x.shape[axis]
+    if n == 1:  # what mean and var give for one sample, exactly (x / 1 and 0), faster
+        b_mean, b_var = np.take(x, 0, axis=axis), np.zeros_like(mean)
+    else:
+        b_mean, b_var = x.mean(axis=axis), x.var(axis=axis)
+    total = count + n
+    delta = b_mean - mean
+    m2 = var * count + b_var * n + delta * delta * count * n / total
+    return mean + delta * n / total, m2 / total, total
+
+
+def scaled_obs(obs: Any, mean: np.ndarray, var: np.ndarray, clip: Any) -> np.ndarray:
+    """``clip((obs - mean) / sqrt(var + 1e-8), -clip, clip)`` as float32."""
+    out = (np.asarray(obs, dtype=np.float64) - mean) / np.sqrt(var + 1e-8)
+    return np.clip(out, -clip, clip).astype(np.float32)
+
+
+def scaled_reward(r: np.ndarray, ret_var: np.ndarray, clip: Any) -> np.ndarray:
+    """``clip(r / sqrt(var(G) + 1e-8), -clip, clip)`` as float32."""
+    return np.clip(r / np.sqrt(ret_var + 1e-8), -clip, clip).astype(np.float32)
 
 
 class RunningMeanStd:
@@ -28,17 +56,9 @@ class RunningMeanStd:
     def update(self, batch: np.ndarray) -> None:
         """Merge a batch of shape ``[n, *shape]``."""
         x = np.asarray(batch, dtype=np.float64)
-        n = x.shape[0]
-        if n == 0:
+        if x.shape[0] == 0:
             return
-        b_mean = x.mean(axis=0)
-        b_var = x.var(axis=0)
-        total = self.count + n
-        delta = b_mean - self.mean
-        m2 = self.var * self.count + b_var * n + delta * delta * self.count * n / total
-        self.mean = self.mean + delta * n / total
-        self.var = m2 / total
-        self.count = total
+        self.mean, self.var, self.count = merge_moments(self.mean, self.var, self.count, x, 0)
 
     def state_dict(self) -> dict[str, Any]:
         """Copies of mean, var and count."""
@@ -75,10 +95,7 @@ class Normalizer:
             return np.asarray(obs, dtype=np.float32)
         if update:
             self.obs_rms.update(obs)
-        out = (np.asarray(obs, dtype=np.float64) - self.obs_rms.mean) / np.sqrt(
-            self.obs_rms.var + 1e-8
-        )
-        return np.clip(out, -self.cfg.clip_obs, self.cfg.clip_obs).astype(np.float32)
+        return scaled_obs(obs, self.obs_rms.mean, self.obs_rms.var, self.cfg.clip_obs)
 
     def reward(self, reward: np.ndarray, done: np.ndarray) -> np.ndarray:
         """Normalised float32 rewards of one vector step; ``done`` = terminated | truncated."""
@@ -87,11 +104,9 @@ class Normalizer:
             return r.astype(np.float32)
         self.returns = self.returns * self.cfg.gamma + r
         self.ret_rms.update(self.returns)
-        out = np.clip(
-            r / np.sqrt(self.ret_rms.var + 1e-8), -self.cfg.clip_reward, self.cfg.clip_reward
-        )
+        out = scaled_reward(r, self.ret_rms.var, self.cfg.clip_reward)
         self.returns[np.asarray(done, dtype=bool)] = 0.0
-        return out.astype(np.float32)
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """Statistics and the running returns."""
@@ -106,3 +121,77 @@ class Normalizer:
         self.obs_rms.load_state_dict(state["obs_rms"])
         self.ret_rms.load_state_dict(state["ret_rms"])
         self.returns = np.array(state["returns"], dtype=np.float64)
+
+
+class StackedNormalizer:
+    """The :class:`Normalizer` of K runs of one population, stacked along a first axis.
+
+    Member k's statistics are row k of float64 arrays; every operation is the solo
+    normaliser's on those rows (:func:`merge_moments`, :func:`scaled_obs`,
+    :func:`scaled_reward`), so a member's numbers are those of a run of its own. The
+    settings that may differ between members (gamma, the clip bounds) are per-row arrays;
+    whether observations and rewards are normalised at all is common to the population.
+    """
+
+    def __init__(
+        self, members: int, n_envs: int, obs_dim: int, normalize_obs: bool, normalize_reward: bool
+    ) -> None:
+        K = members
+        self.normalize_obs, self.normalize_reward = normalize_obs, normalize_reward
+        self.obs_mean = np.zeros((K, obs_dim))
+        self.obs_var = np.ones((K, obs_dim))
+        self.obs_count = np.zeros((K, 1))
+        self.ret_mean = np.zeros(K)
+        self.ret_var = np.ones(K)
+        self.ret_count = np.zeros(K)
+        self.returns = np.zeros((K, n_envs))
+        self.gamma = np.zeros((K, 1))
+        self.clip_obs = np.ones((K, 1, 1))
+        self.clip_reward = np.ones((K, 1))
+
+    def load_member(self, k: int, norm: Normalizer) -> None:
+        """Row ``k`` from a run's normaliser (its statistics and settings)."""
+        self.obs_mean[k], self.obs_var[k] = norm.obs_rms.mean, norm.obs_rms.var
+        self.obs_count[k] = norm.obs_rms.count
+        self.ret_mean[k], self.ret_var[k] = norm.ret_rms.mean, norm.ret_rms.var
+        self.ret_count[k] = norm.ret_rms.count
+        self.returns[k] = norm.returns
+        self.gamma[k] = norm.cfg.gamma
+        self.clip_obs[k] = norm.cfg.clip_obs
+        self.clip_reward[k] = norm.cfg.clip_reward
+
+    def store_member(self, k: int, norm: Normalizer) -> None:
+        """Row ``k`` into a run's normaliser (the inverse of :meth:`load_member`)."""
+        norm.obs_rms.mean, norm.obs_rms.var = self.obs_mean[k].copy(), self.obs_var[k].copy()
+        norm.obs_rms.count = float(self.obs_count[k, 0])
+        norm.ret_rms.mean, norm.ret_rms.var = self.ret_mean[k].copy(), self.ret_var[k].copy()
+        norm.ret_rms.count = float(self.ret_count[k])
+        norm.returns = self.returns[k].copy()
+
+    def obs(self, obs: np.ndarray, update: bool) -> np.ndarray:
+        """Normalised float32 observations ``[K, n_envs, obs_dim]`` (``update`` counts them)."""
+        if not self.normalize_obs:
+            return np.asarray(obs, dtype=np.float32)
+        x = np.asarray(obs, dtype=np.float64)
+        if update:
+            moments = merge_moments(self.obs_mean, self.obs_var, self.obs_count, x, 1)
+            self.obs_mean, self.obs_var, self.obs_count = moments
+        return scaled_obs(x, self.obs_mean[:, None], self.obs_var[:, None], self.clip_obs)
+
+    def member_obs(self, k: int, obs: np.ndarray) -> np.ndarray:
+        """Member ``k``'s normalisation of ``obs`` ``[n, obs_dim]`` (not counted)."""
+        if not self.normalize_obs:
+            return np.asarray(obs, dtype=np.float32)
+        return scaled_obs(obs, self.obs_mean[k], self.obs_var[k], self.clip_obs[k, 0, 0])
+
+    def reward(self, reward: np.ndarray, done: np.ndarray) -> np.ndarray:
+        """Normalised float32 rewards ``[K, n_envs]`` of one step of every member."""
+        r = np.asarray(reward, dtype=np.float64)
+        if not self.normalize_reward:
+            return r.astype(np.float32)
+        self.returns = self.returns * self.gamma + r
+        moments = merge_moments(self.ret_mean, self.ret_var, self.ret_count, self.returns, 1)
+        self.ret_mean, self.ret_var, self.ret_count = moments
+        out = scaled_reward(r, self.ret_var[:, None], self.clip_reward)
+        self.returns[np.asarray(done, dtype=bool)] = 0.0
+        return out

@@ -9,7 +9,11 @@ from typing import Any
 from ..runs.folder import config_json
 from ..runs.kinds import kind_of
 
-__all__ = ["Job", "plan_jobs"]
+__all__ = ["POPULATION_KINDS", "Job", "plan_jobs"]
+
+POPULATION_KINDS = ("online", "batch")
+"""Learner kinds whose trainer holds several runs at once (a population); runs of the
+other kinds get a trainer each."""
 
 
 @dataclass(frozen=True)
@@ -41,7 +45,7 @@ def plan_jobs(
     jobs: list[Job] = []
     for members in groups.values():
         kind = kind_of(members[0][1])
-        cap = population if kind.name == "online" else 1
+        cap = population if kind.name in POPULATION_KINDS else 1
         n_jobs = max(1, round(workers * len(members) / total)) if total else 1
         if cap == 1:
             n_jobs = len(members)

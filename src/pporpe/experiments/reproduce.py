@@ -1,10 +1,11 @@
 """``pporpe reproduce``: a grid of training runs on a local process pool or a Ray cluster.
 
 Each run trains and evaluates into ``OUT/<env>/<method>/seed<k>`` through the one run
-loop (:func:`pporpe.runs.loop.run_queue`); online runs of one task share a population
-(:func:`~.planning.plan_jobs`). Runs checkpoint and resume, so running :func:`reproduce`
-again with the same arguments after a crash (even SIGKILL) skips finished runs and
-resumes unfinished ones from their last checkpoint, with the same packing.
+loop (:func:`pporpe.runs.loop.run_queue`); online runs of one task, and batch runs of one
+task and shape, share a population (:func:`~.planning.plan_jobs`). Runs checkpoint and
+resume, so running :func:`reproduce` again with the same arguments after a crash (even
+SIGKILL) skips finished runs and resumes unfinished ones from their last checkpoint, with
+the same packing.
 
 Safety against two processes on one run: local workers die with their parent
 (``PR_SET_PDEATHSIG`` on Linux), and every run holds an exclusive lock on
@@ -36,11 +37,13 @@ from .progress import GridProgress
 __all__ = ["GridOutcome", "Job", "merged_grid_summary", "plan_jobs", "reproduce", "run_job"]
 
 DEFAULT_POPULATION = 4
-"""Online runs trained at once by one worker: the best K of benchmarks/throughput.py
+"""Runs trained at once by one worker: the best K of benchmarks/throughput.py
 (benchmarks/results/throughput.json), where the fused engine's member-step is cheapest
 (at K = 4 its members' state stays in cache; from K = 8 it does not). The torch engine
 gains from larger populations instead (its cost per member-step falls about 4x from
-K = 1 to 30): pass ``--population 30`` for a grid it trains."""
+K = 1 to 30): pass ``--population 30`` for a grid it trains. Batch runs
+(:class:`pporpe.batch.BatchPopulation`) gain up to K = 30 as well
+(benchmarks/results/batch_population.json)."""
 
 DEFAULT_CHECKPOINT_SECONDS = 60.0
 """At most one population checkpoint a minute: a population's state is megabytes."""
@@ -175,10 +178,11 @@ def reproduce(
     ``whole``: the grid ``spec`` is a chunk of (:func:`~.grid.select_runs`); ``grid.json``
     then lists all of its runs, so that the report counts what is still missing.
 
-    Online runs of one task are trained ``population`` at a time by one worker
-    (:func:`~.planning.plan_jobs`); their checkpoints are written at most every
-    ``checkpoint_seconds``. ``status.json`` in ``out`` counts the runs of the whole grid
-    (:mod:`.merge`); a call that trains nothing leaves it and ``grid.json`` as they are.
+    Online runs of one task (batch runs of one task and shape) are trained ``population``
+    at a time by one worker (:func:`~.planning.plan_jobs`); their checkpoints are written
+    at most every ``checkpoint_seconds``. ``status.json`` in ``out`` counts the runs of the
+    whole grid (:mod:`.merge`); a call that trains nothing leaves it and ``grid.json`` as
+    they are.
 
     ``stop`` is asked every few seconds while jobs run; when it turns True (``pporpe
     reproduce`` passes Ctrl-C's request), every running run is checkpointed at its next

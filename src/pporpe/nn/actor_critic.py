@@ -61,6 +61,16 @@ class FlatActorCritic:
         """Leaf views of the value network's parameters."""
 
     @property
+    def shapes(self) -> list[torch.Size]:
+        """Shapes of every parameter tensor, in the layout of :attr:`theta`."""
+        return list(self._shapes)
+
+    @property
+    def n_policy_tensors(self) -> int:
+        """Parameter tensors of the policy network (``extra`` follows them, if any)."""
+        return self._n_pol_tensors
+
+    @property
     def value_block(self) -> Tensor:
         """The value network's parameters as one flat view of :attr:`theta`."""
         return self.theta[self.n_policy :]

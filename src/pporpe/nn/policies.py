@@ -256,8 +256,13 @@ class NormalHead(PolicyHead):
     def log_prob(self, raw: Tensor, u: Tensor) -> Tensor:
         """Return ``log pi(u|s)`` in closed form; equal to ``distribution(raw).log_prob(u)``."""
         loc, scale = self.split(raw)
+        return self.log_prob_at(loc, scale, torch.log(scale), u)
+
+    def log_prob_at(self, loc: Tensor, scale: Tensor, log_scale: Tensor, u: Tensor) -> Tensor:
+        """:meth:`log_prob` of ``u`` from the distribution's location, scale and log-scale
+        (e.g. a scale that stays the same over many calls)."""
         z = (u - loc) / scale
-        return -(0.5 * z * z + torch.log(scale)).sum(-1) - self.act_dim * _HALF_LOG_2PI
+        return -(0.5 * z * z + log_scale).sum(-1) - self.act_dim * _HALF_LOG_2PI
 
     def kl(self, raw_p: Tensor, raw_q: Tensor) -> Tensor:
         """Exact KL(p || q) of two diagonal Gaussians."""
