@@ -433,6 +433,62 @@ def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_po
         bar.close()
 
 
+BATCH_KILL_SPEC = """
+name = "killbatch"
+kind = "batch"
+methods = ["ppo", "rpe"]
+seeds = [0]
+eval_episodes = 1
+checkpoint_every = 2
+
+[learner]
+n_envs = 2
+n_steps = 32
+batch_size = 16
+n_epochs = 2
+layers = 1
+units = 16
+
+[[tasks]]
+env = "pendulum"
+steps = 1920
+"""
+
+
+def test_sigkill_a_grid_of_batch_runs_then_resume_gives_complete_identical_records(
+    tmp_path: Path,
+) -> None:
+    """Batch runs (30 updates, a checkpoint every 2): killed once a run has a checkpoint
+    and restarted, every run's records are complete and equal to the uninterrupted
+    grid's."""
+    spec_path = write_spec(tmp_path, BATCH_KILL_SPEC, "batch.toml")
+    spec = load_spec(spec_path)
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=2, progress=False).ok
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until a run has a checkpoint and is not done
+        ckpts = list(out.glob("pendulum/*/seed0/checkpoint.pt"))
+        if ckpts and not all((c.parent / "done.json").exists() for c in ckpts):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)
+    unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
+    assert unfinished, "the kill came too late to test resuming"
+    proc = _launch(spec_path, out)
+    assert proc.wait(timeout=300) == 0
+    for run in spec.runs:
+        got = records_of(out, run.key)
+        assert [r.episode for r in got] == list(range(len(got)))
+        assert got == records_of(ref, run.key)
+        assert (out / run.key / "evaluation.json").read_text() == (
+            ref / run.key / "evaluation.json"
+        ).read_text()
+
+
 def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> None:
     header = "episode,total_steps,ret,length\n"
 

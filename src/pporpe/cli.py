@@ -36,9 +36,10 @@ def _train_flags() -> tuple[Any, dict[str, Any]]:
     from .cli_flags import ConfigFlags, FlagGroup
     from .online.config import OnlineConfig, TrainConfig
 
-    shared = frozenset({"env", "seed", "checkpoint_every", "eval_episodes"})
+    # the same settings of a run; checkpoint_every counts episodes of one, updates of the other
+    shared = frozenset({"env", "seed", "eval_episodes"})
     groups = {
-        "run": FlagGroup("run", TrainConfig, skip=frozenset({"learner"})),
+        "run": FlagGroup("run", TrainConfig, skip=frozenset({"learner"}), label="online"),
         "online": FlagGroup("online learner", OnlineConfig),
         "batch": FlagGroup("batch PPO", BatchConfig, skip=shared, rename={"total_steps": "steps"}),
     }
@@ -366,7 +367,9 @@ def _add_reproduce(sub: Any) -> None:
         "--checkpoint-seconds",
         type=_nonneg_float,
         default=None,
-        help="least seconds between two checkpoints of a population (default 60)",
+        help="least seconds between two checkpoints of a population asked for by the spec's "
+        "checkpoint_every (default 60); whatever the count, every run is also checkpointed "
+        "30 s into the command, 1 min later, then every 2 min",
     )
     rp.add_argument(
         "--tasks", nargs="+", default=None, metavar="TASK", help="only these tasks of the spec"

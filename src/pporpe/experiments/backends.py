@@ -25,6 +25,7 @@ from typing import Any
 
 from ..config import config_from_dict
 from ..io import atomic_write_text
+from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.kinds import get_kind
 from ..runs.stopping import Interrupted
 from .planning import Job
@@ -70,9 +71,11 @@ def run_job(
     runs: list[tuple[str, dict[str, Any]]],
     population: int = 1,
     checkpoint_seconds: float = 0.0,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
     """Train a queue of runs of one task through one trainer of up to ``population`` slots
-    (in a worker); never raises, reports the status of every run.
+    (in a worker); never raises, reports the status of every run. ``checkpoint_seconds``
+    (for a population) and ``checkpoint_within`` go to :func:`~pporpe.runs.loop.run_queue`.
 
     ``runs`` holds ``(run_dir, config.json content)`` pairs; ``home`` keeps the queue's
     ``population.json``. Every run folder is locked while the job holds it. A run that
@@ -98,6 +101,7 @@ def run_job(
                 home=home,
                 checkpoint_seconds=checkpoint_seconds if population > 1 else 0.0,
                 stop=_STOP.is_set if _STOP is not None else None,
+                checkpoint_within=checkpoint_within,
             )
         out: list[dict[str, Any]] = []
         for d, res in zip((d for d, _ in runs), results, strict=True):
@@ -153,6 +157,7 @@ def run_local(
     progress: GridProgress,
     checkpoint_seconds: float,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses.
     When ``stop()`` turns True (Ctrl-C), the running jobs stop at a safe point with their
@@ -162,10 +167,8 @@ def run_local(
     event = ctx.Event()
     pool = ProcessPoolExecutor(workers, ctx, initializer=_worker_init, initargs=(event,))
     try:
-        futures = {
-            pool.submit(run_job, j.home, j.runs, j.population, checkpoint_seconds): j
-            for j in jobs
-        }
+        cadence = (checkpoint_seconds, checkpoint_within)
+        futures = {pool.submit(run_job, j.home, j.runs, j.population, *cadence): j for j in jobs}
         pending = set(futures)
         progress.poll(min(workers, len(pending)), results)
         while pending:
@@ -191,6 +194,7 @@ def run_ray(
     progress: GridProgress,
     checkpoint_seconds: float,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` as Ray tasks of one CPU each (on the cluster at ``address``, or a local
     one started for the call); every job's run statuses. When ``stop()`` turns True
@@ -209,7 +213,8 @@ def run_ray(
         # a worker that dies (killed, out of memory, its node lost) is retried: the task
         # resumes its runs from their checkpoints, with the same records
         remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
-        job_of = {remote.remote(j.home, j.runs, j.population, checkpoint_seconds): j for j in jobs}
+        cadence = (checkpoint_seconds, checkpoint_within)
+        job_of = {remote.remote(j.home, j.runs, j.population, *cadence): j for j in jobs}
         refs = list(job_of)
         results: list[dict[str, Any]] = []
         total_cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
