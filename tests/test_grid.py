@@ -222,7 +222,7 @@ def test_cli_selects_a_chunk_and_refuses_an_unknown_task(
     assert not out.exists()
     args = ["reproduce", str(spec), "--out", str(out), "--methods", "rpe", "--seeds", "1"]
     assert main([*args, "--quiet"]) == 0
-    assert "1 runs done" in capsys.readouterr().out
+    assert "1 run done (0 were already done)" in capsys.readouterr().out
     assert sorted(p.name for p in (out / "pendulum").iterdir()) == ["rpe"]
     assert [p.name for p in (out / "pendulum" / "rpe").iterdir()] == ["seed1"]
     listed = [r["key"] for r in json.loads((out / "grid.json").read_text())["runs"]]

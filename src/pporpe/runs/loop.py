@@ -44,6 +44,7 @@ from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
+from ..text import fixed
 from .cadence import CHECKPOINT_WITHIN_S, CheckpointClock
 from .folder import (
     CHECKPOINT,
@@ -86,6 +87,8 @@ class RunResult:
     """The last extra scalars the trainer reported (a batch update's statistics)."""
     error: str | None = None
     """Why the run failed alone (also in its ``error.txt``), or None."""
+    already_done: bool = False
+    """Whether the run was complete before this call (nothing was trained or evaluated)."""
 
 
 OnChunk = Callable[[Trainer, Progress, float], None]
@@ -105,6 +108,7 @@ def _finished_result(run: Path) -> RunResult:
         int(done.get("total_steps", 0)),
         float(done.get("train_time", 0.0)),
         chunks,
+        already_done=True,
     )
 
 
@@ -121,7 +125,8 @@ class _Run:
         self.logger = RunLogger(run)
         self.t_start = time.perf_counter()
         self.bar: Any = None
-        self._want_bar = bar
+        self.want_bar = bar
+        """Whether the run shows progress bars (of its training and its test episodes)."""
 
     def resume(self, state: dict[str, Any] | None, trainer: Trainer, slot: int) -> None:
         if state is not None:
@@ -129,7 +134,7 @@ class _Run:
             self.wall_offset = float(state["wall_time"])
         self.resumed_from = trainer.counters(slot)["chunks"]
         self.t_start = time.perf_counter()
-        if self._want_bar:
+        if self.want_bar:
             from tqdm import tqdm
 
             total, unit = self.kind.budget(self.cfg)
@@ -164,8 +169,8 @@ class _Run:
             self.logger.scalars("update", self.last, report.total_steps)
         if self.bar is not None:
             self.bar.update(report.bar_advance)
-            if self.records:
-                self.bar.set_postfix(ep=len(self.records) - 1, ret=f"{self.records[-1].ret:.1f}")
+            if self.records:  # the last episode by its number from 1, as the bar counts
+                self.bar.set_postfix(ep=len(self.records), ret=fixed(self.records[-1].ret, 1))
         return new
 
     def state(self, trainer: Trainer, slot: int) -> dict[str, Any]:
@@ -317,8 +322,9 @@ class _Queue:
         evaluation = None
         if cfg.eval_episodes > 0:
             evaluation = evaluate_policy(
-                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
-            )
+                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET,
+                progress=book.want_bar,
+            )  # fmt: skip
             atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
         done = {"episodes": len(book.records), **counters, "train_time": total_time}
         atomic_write_json(book.run / "done.json", done)
