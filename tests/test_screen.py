@@ -1,12 +1,14 @@
 """What the commands show on the screen: a bar for the test episodes, episodes counted from
-1, "1 episode" and "0.00" (not "1 episodes", "-0.00"), and "already done" for a finished
-run."""
+1, "1 episode" and "0.00" (not "1 episodes", "-0.00"), "already done" for a finished run,
+and the live progress a grid's bar reads between two checkpoints."""
 
 from __future__ import annotations
 
 import io
+import json
 import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -14,7 +16,8 @@ from pporpe.cli import main
 from pporpe.evaluation import evaluate_policy, summarize_returns
 from pporpe.online import OnlineConfig, TrainConfig
 from pporpe.runs import train
-from pporpe.runs.loop import load_policy
+from pporpe.runs.cadence import LIVE_FILE
+from pporpe.runs.loop import load_policy, run_queue
 from pporpe.text import count, fixed
 
 TINY = ("--layers", "1", "--units", "8", "--quiet")
@@ -112,3 +115,26 @@ def test_batch_counts_read_as_words(tmp_path: Path, capsys: pytest.CaptureFixtur
     out = capsys.readouterr().out
     assert re.search(r"^trained 64 steps \(1 update, \d+ episodes?\) in ", out, re.M), out
 
+
+def test_a_run_in_training_writes_its_live_progress_and_removes_it_at_the_end(
+    tmp_path: Path,
+) -> None:
+    """The grid's bar counted only the episodes on disk, written at each checkpoint: a
+    fresh grid showed "episodes=0/6000" until its first. Its runs now write
+    progress.json every few seconds (here after every step), removed when they end."""
+    seen: list[tuple[int, dict[str, Any]]] = []
+    runs = [(small_run(tmp_path, episodes=4, eval_episodes=0), tmp_path / f"r{s}") for s in "ab"]
+
+    def on_episode(rec: Any) -> None:
+        live = json.loads((tmp_path / "ra" / LIVE_FILE).read_text())
+        seen.append((rec.episode, live))
+
+    cfg = runs[0][0]
+    run_queue([(cfg, runs[0][1])], on_episode=on_episode, live_seconds=0.0)
+    # written after the step before each episode's end: the episodes done until then
+    assert [live["episodes"] for _, live in seen] == [episode for episode, _ in seen]
+    assert all(live["total_steps"] > 0 for _, live in seen[1:])
+    assert [len(live["lengths"]) for _, live in seen] == [0, 1, 2, 3]
+    assert not (tmp_path / "ra" / LIVE_FILE).exists()  # removed when the run finished
+    run_queue([(cfg, runs[1][1])], live_seconds=None)
+    assert not (tmp_path / "rb" / LIVE_FILE).exists()  # never written unless asked

@@ -72,10 +72,12 @@ def run_job(
     population: int = 1,
     checkpoint_seconds: float = 0.0,
     checkpoint_within: float = CHECKPOINT_WITHIN_S,
+    live_seconds: float | None = None,
 ) -> list[dict[str, Any]]:
     """Train a queue of runs of one task through one trainer of up to ``population`` slots
     (in a worker); never raises, reports the status of every run. ``checkpoint_seconds``
-    (for a population) and ``checkpoint_within`` go to :func:`~pporpe.runs.loop.run_queue`.
+    (for a population), ``checkpoint_within`` and ``live_seconds`` go to
+    :func:`~pporpe.runs.loop.run_queue`.
 
     ``runs`` holds ``(run_dir, config.json content)`` pairs; ``home`` keeps the queue's
     ``population.json``. Every run folder is locked while the job holds it. A run that
@@ -102,6 +104,7 @@ def run_job(
                 checkpoint_seconds=checkpoint_seconds if population > 1 else 0.0,
                 stop=_STOP.is_set if _STOP is not None else None,
                 checkpoint_within=checkpoint_within,
+                live_seconds=live_seconds,
             )
         out: list[dict[str, Any]] = []
         for d, res in zip((d for d, _ in runs), results, strict=True):
@@ -161,13 +164,14 @@ def run_local(
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses.
     When ``stop()`` turns True (Ctrl-C), the running jobs stop at a safe point with their
-    checkpoints and the others are cancelled: their runs are ``"interrupted"``."""
+    checkpoints and the others are cancelled: their runs are ``"interrupted"``. The jobs
+    write their runs' live progress when the bar reads it (:attr:`GridProgress.live_seconds`)."""
     results: list[dict[str, Any]] = []
     ctx = get_context("spawn")
     event = ctx.Event()
     pool = ProcessPoolExecutor(workers, ctx, initializer=_worker_init, initargs=(event,))
     try:
-        cadence = (checkpoint_seconds, checkpoint_within)
+        cadence = (checkpoint_seconds, checkpoint_within, progress.live_seconds)
         futures = {pool.submit(run_job, j.home, j.runs, j.population, *cadence): j for j in jobs}
         pending = set(futures)
         progress.poll(min(workers, len(pending)), results)
@@ -213,7 +217,7 @@ def run_ray(
         # a worker that dies (killed, out of memory, its node lost) is retried: the task
         # resumes its runs from their checkpoints, with the same records
         remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
-        cadence = (checkpoint_seconds, checkpoint_within)
+        cadence = (checkpoint_seconds, checkpoint_within, progress.live_seconds)
         job_of = {remote.remote(j.home, j.runs, j.population, *cadence): j for j in jobs}
         refs = list(job_of)
         results: list[dict[str, Any]] = []

@@ -45,7 +45,7 @@ from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_eva
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
 from ..text import fixed
-from .cadence import CHECKPOINT_WITHIN_S, CheckpointClock
+from .cadence import CHECKPOINT_WITHIN_S, RECENT_EPISODES, CheckpointClock, LiveProgress
 from .folder import (
     CHECKPOINT,
     check_checkpoint,
@@ -207,6 +207,7 @@ class _Hooks:
     checkpoint_seconds: float = 0.0
     stop: Callable[[], bool] | None = None
     checkpoint_within: float = CHECKPOINT_WITHIN_S
+    live_seconds: float | None = None
 
 
 class _Queue:
@@ -239,6 +240,7 @@ class _Queue:
         self.trainer = kind.make_trainer(cfgs[pending[0]], len(self.packing.slots))
         self.books: dict[int, _Run] = {}
         self.clock = CheckpointClock(hooks.checkpoint_seconds, hooks.checkpoint_within)
+        self.live = LiveProgress(hooks.live_seconds)
 
     @property
     def slots(self) -> list[int | None]:
@@ -302,6 +304,7 @@ class _Queue:
             book.run, book.records, None, book.resumed_from, error=message, chunks=0
         )
         self.trainer.stop(slot)
+        self.live.remove(book.run)
         self.fill(slot)
 
     def finish(self, slot: int) -> None:
@@ -328,6 +331,7 @@ class _Queue:
             atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
         done = {"episodes": len(book.records), **counters, "train_time": total_time}
         atomic_write_json(book.run / "done.json", done)
+        self.live.remove(book.run)
         self.results[i] = RunResult(
             book.run, book.records, evaluation, book.resumed_from, counters["total_steps"],
             total_time, counters["chunks"], book.last,
@@ -401,12 +405,26 @@ class _Queue:
             changed = True
         if changed:
             self.write_packing()
+        if self.live.due():
+            self.write_live()
+
+    def write_live(self) -> None:
+        """Every busy run's live progress (:class:`~.cadence.LiveProgress`)."""
+        self.live.write(
+            [
+                (book.run, len(book.records), self.trainer.counters(slot)["total_steps"],
+                 [r.length for r in book.records[-RECENT_EPISODES:]])
+                for slot, book in self.books.items()
+            ]
+        )  # fmt: skip
 
     def interrupt(self) -> None:
         """Stop on request, between two units of work: every busy run's checkpoint at this
         step, then :class:`~pporpe.runs.stopping.Interrupted` (how far each run got)."""
         self.checkpoint()
         self.write_packing()
+        for book in self.books.values():
+            self.live.remove(book.run)
         raise Interrupted({book.run: len(book.records) for book in self.books.values()})
 
     def run(self) -> None:
@@ -466,6 +484,7 @@ def run_queue(
     num_threads: int = 1,
     stop: Callable[[], bool] | None = None,
     checkpoint_within: float = CHECKPOINT_WITHIN_S,
+    live_seconds: float | None = None,
 ) -> list[RunResult]:
     """Train every ``(config, run_dir)`` of ``runs`` (one learner kind, one task and network
     shape) through one trainer with up to ``capacity`` slots, refilling a slot when its run
@@ -477,7 +496,8 @@ def run_queue(
     whatever the count: after a quarter of ``checkpoint_within`` seconds (default
     :data:`~.cadence.CHECKPOINT_WITHIN_S`, 2 minutes), half of it later, then every
     ``checkpoint_within`` seconds (``math.inf``: by count only; :mod:`.cadence`); every run
-    also gets one when it finishes. ``on_episode`` is called
+    also gets one when it finishes. ``live_seconds``: write each busy run's
+    ``progress.json`` that often (None: never; a grid's bar reads it). ``on_episode`` is called
     after every episode, ``on_chunk`` after every unit of work of a run. ``num_threads``:
     torch's intra-op threads while training (1: the setting under which the same seed gives
     the same numbers), the caller's setting restored when the call returns. (One setting
@@ -515,7 +535,8 @@ def run_queue(
         )
         _check_checkpoints([dirs[i] for i in pending], population)
         hooks = _Hooks(
-            progress, on_episode, on_chunk, checkpoint_seconds, stop, checkpoint_within
+            progress, on_episode, on_chunk, checkpoint_seconds, stop, checkpoint_within,
+            live_seconds,
         )  # fmt: skip
         slots = max(1, min(capacity, len(pending)))
         with _torch_threads(num_threads):
