@@ -28,6 +28,7 @@ from ..io import atomic_write_text
 from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.kinds import get_kind
 from ..runs.stopping import Interrupted
+from ..text import count
 from .planning import Job
 from .progress import GridProgress
 
@@ -203,7 +204,7 @@ def run_ray(
     """Run ``jobs`` as Ray tasks of one CPU each (on the cluster at ``address``, or a local
     one started for the call); every job's run statuses. When ``stop()`` turns True
     (Ctrl-C), the tasks left are cancelled: their runs keep their last checkpoints and are
-    ``"interrupted"``."""
+    ``"interrupted"``. Ray's own log lines stay off the terminal (:func:`_start_ray`)."""
     try:
         import ray
     except ImportError:
@@ -212,7 +213,7 @@ def run_ray(
         ) from None
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        _start_ray(ray, address, progress)
     try:
         # a worker that dies (killed, out of memory, its node lost) is retried: the task
         # resumes its runs from their checkpoints, with the same records
@@ -237,3 +238,19 @@ def run_ray(
     finally:
         if started_here:
             ray.shutdown()
+
+
+def _start_ray(ray: Any, address: str | None, progress: GridProgress) -> None:
+    """Connect to the Ray cluster at ``address`` (or start a local one) without Ray's log
+    lines on the terminal, where they would break the grid's bar (its token warning, "Started
+    a local Ray instance"; errors still show); one line above the bar says where the jobs run
+    instead. The workers' output stays on the cluster (``log_to_driver=False``)."""
+    import logging
+
+    context = ray.init(
+        address=address, include_dashboard=False, log_to_driver=False,
+        logging_level=logging.ERROR,
+    )  # fmt: skip
+    cpus = int(ray.cluster_resources().get("CPU", 0))
+    where = getattr(context, "address_info", {}).get("gcs_address") or address or "local"
+    progress.note(f"ray: {count(cpus, 'CPU')} at {where}")

@@ -154,6 +154,11 @@ class GridProgress:
                 bar_format=self.BAR_FORMAT,
             )
 
+    def note(self, line: str) -> None:
+        """A line above the bar (nothing without a bar)."""
+        if self.bar is not None:
+            self.bar.write(line, file=self.file)
+
     def count_episodes(self) -> str:
         """``"N/M, left~T"``: episodes done and the time left, the steps still to run
         (:func:`run_progress`) at the rate of the steps done in this call
