@@ -118,7 +118,7 @@ def test_readme_cli_example_runs_with_a_tiny_budget(
         assert main([*args, *extra]) == 0, argv
     out = train[train.index("--out") + 1]
     assert (tmp_path / out / "done.json").exists()
-    assert "test return over 1 episodes" in capsys.readouterr().out
+    assert "test return over 1 episode:" in capsys.readouterr().out
 
 
 def test_every_documented_command_parses() -> None:

@@ -222,7 +222,7 @@ def test_cli_selects_a_chunk_and_refuses_an_unknown_task(
     assert not out.exists()
     args = ["reproduce", str(spec), "--out", str(out), "--methods", "rpe", "--seeds", "1"]
     assert main([*args, "--quiet"]) == 0
-    assert "1 runs done" in capsys.readouterr().out
+    assert "1 run done (0 were already done)" in capsys.readouterr().out
     assert sorted(p.name for p in (out / "pendulum").iterdir()) == ["rpe"]
     assert [p.name for p in (out / "pendulum" / "rpe").iterdir()] == ["seed1"]
     listed = [r["key"] for r in json.loads((out / "grid.json").read_text())["runs"]]
@@ -433,70 +433,175 @@ def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_po
         bar.close()
 
 
+BATCH_KILL_SPEC = """
+name = "killbatch"
+kind = "batch"
+methods = ["ppo", "rpe"]
+seeds = [0]
+eval_episodes = 1
+checkpoint_every = 2
+
+[learner]
+n_envs = 2
+n_steps = 32
+batch_size = 16
+n_epochs = 2
+layers = 1
+units = 16
+
+[[tasks]]
+env = "pendulum"
+steps = 1920
+"""
+
+
+def test_sigkill_a_grid_of_batch_runs_then_resume_gives_complete_identical_records(
+    tmp_path: Path,
+) -> None:
+    """Batch runs (30 updates, a checkpoint every 2): killed once a run has a checkpoint
+    and restarted, every run's records are complete and equal to the uninterrupted
+    grid's."""
+    spec_path = write_spec(tmp_path, BATCH_KILL_SPEC, "batch.toml")
+    spec = load_spec(spec_path)
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=2, progress=False).ok
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until a run has a checkpoint and is not done
+        ckpts = list(out.glob("pendulum/*/seed0/checkpoint.pt"))
+        if ckpts and not all((c.parent / "done.json").exists() for c in ckpts):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)
+    unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
+    assert unfinished, "the kill came too late to test resuming"
+    proc = _launch(spec_path, out)
+    assert proc.wait(timeout=300) == 0
+    for run in spec.runs:
+        got = records_of(out, run.key)
+        assert [r.episode for r in got] == list(range(len(got)))
+        assert got == records_of(ref, run.key)
+        assert (out / run.key / "evaluation.json").read_text() == (
+            ref / run.key / "evaluation.json"
+        ).read_text()
+
+
+class Clock:
+    """A stand-in for the bar's clock: seconds, set by the test."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+HEADER = "episode,total_steps,ret,length\n"
+
+
+def csv_rows(lengths: list[int]) -> str:
+    steps = [sum(lengths[: i + 1]) for i in range(len(lengths))]
+    return HEADER + "".join(f"{i},{s},0,{n}\n" for i, (s, n) in enumerate(zip(steps, lengths)))
+
+
 def test_progress_counts_episodes_on_disk_and_the_time_left(tmp_path: Path) -> None:
-    header = "episode,total_steps,ret,length\n"
-
-    def rows(lengths: list[int]) -> str:
-        steps = [sum(lengths[: i + 1]) for i in range(len(lengths))]
-        return "".join(f"{i},{s},0,{n}\n" for i, (s, n) in enumerate(zip(steps, lengths)))
-
     a, b, c, d = (tmp_path / x for x in "abcd")
     for folder in (a, b, c, d):
         folder.mkdir()
-    (a / "episodes.csv").write_text(header + rows([10, 20, 30]))
-    (b / "episodes.csv").write_text(header + rows([5]))
+    (a / "episodes.csv").write_text(csv_rows([10, 20, 30]))
+    (b / "episodes.csv").write_text(csv_rows([5]))
     (b / "done.json").write_text("{}")
     # 7 episodes left at the mean length of the recent ones, (10 + 20 + 30) / 3.
-    assert run_progress(a, 10) == RunProgress(3, 60, 140.0)
-    assert run_progress(b, 10) == RunProgress(10, 5, 0.0)  # done: the whole budget
-    assert run_progress(d, 10) == RunProgress(0, 0, None)  # no checkpoint yet
+    assert run_progress(a, 10) == RunProgress(3, 60, 140.0, 20.0)
+    assert run_progress(b, 10) == RunProgress(10, 5, 0.0, 5.0)  # done: the whole budget
+    assert run_progress(d, 10) == RunProgress(0, 0, None)  # no episode yet
     assert run_progress(a, 2).episodes == 2  # never more than the budget
     many = list(range(1, 16))  # the mean of the last RECENT_EPISODES lengths only
-    (c / "episodes.csv").write_text(header + rows(many))
+    (c / "episodes.csv").write_text(csv_rows(many))
     recent = many[-RECENT_EPISODES:]
     assert run_progress(c, 20).steps_left == 5 * sum(recent) / len(recent)
     # Without the step columns every episode counts as one step.
     (c / "episodes.csv").write_text("episode,ret\n0,1\n1,2\n")
-    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
-    (c / "episodes.csv").write_text(header + "0,10,0,10\n1,x,0\n")  # edited by hand
-    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
-    (c / "episodes.csv").write_bytes(header.encode() + b"0,10,0,10\n\xff\xfe,1\n")  # not UTF-8
-    assert run_progress(c, 10) == RunProgress(2, 2, 8.0)
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0, 1.0)
+    (c / "episodes.csv").write_text(HEADER + "0,10,0,10\n1,x,0\n")  # edited by hand
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0, 1.0)
+    (c / "episodes.csv").write_bytes(HEADER.encode() + b"0,10,0,10\n\xff\xfe,1\n")  # not UTF-8
+    assert run_progress(c, 10) == RunProgress(2, 2, 8.0, 1.0)
 
-    bar = GridProgress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10])
+    clock = Clock()
+    bar = GridProgress(4, 0, [a, b, c, d], enabled=False, budgets=[10, 10, None, 10], clock=clock)
     assert bar.episodes_total == 30  # c has no episode budget
     assert bar.count_episodes() == "13/30"  # the first count: no rate yet
-    (a / "episodes.csv").write_text(header + rows([10, 20, 30, 40]))
-    bar.history[0] = (bar.history[0][0] - 120.0, 65)  # 40 steps in two minutes
-    # Steps left: a 6 * 25 = 150, b 0, d guessed at the mean of the others (75): 225 steps
-    # at 40 / 120 s is 11.25 min. (The episode rate would say 16 episodes in 32 min.)
-    assert bar.count_episodes() == "14/30, left~11 min"
-    # The rate is that of the last RATE_COUNTS counts: old, faster progress is forgotten.
-    bar.history = [(0.0, 0)] + [(bar.history[-1][0], 105)] * (bar.RATE_COUNTS - 1)
+    (a / "episodes.csv").write_text(csv_rows([10, 20, 30, 40]))
+    clock.t = 120.0  # 40 steps in two minutes
+    # Steps left: a 6 * 25 = 150, b 0, and d, which has no episode yet, its whole budget
+    # at the recent length of the task's other runs, 10 * (25 + 5) / 2 = 150: 300 steps at
+    # 40 / 120 s is 15 min. (The episode rate would say 16 episodes in 32 min; d guessed
+    # at the others' steps left, as before, 4 min too few.)
+    assert bar.count_episodes() == "14/30, left~15 min"
+    # The rate is that of the last five minutes: old, faster progress is forgotten.
+    clock.t = 120.0 + bar.RATE_WINDOW_S + 1
     assert bar.count_episodes() == "14/30"  # nothing gained within the window
-    (a / "episodes.csv").write_text(header + rows([1] * 10))
+    (a / "episodes.csv").write_text(csv_rows([1] * 10))
     (d / "done.json").write_text("{}")
     assert bar.count_episodes() == "30/30"
+
+
+def test_progress_counts_the_live_episodes_of_this_call_and_its_rate(tmp_path: Path) -> None:
+    """Between two checkpoints the bar counts the episodes each worker reports live
+    (progress.json, every few seconds), not only those on disk: a fresh grid showed
+    "episodes=0/6000" until its first checkpoint. The time left comes from the steps done
+    in this call, from when work began: a resumed grid's estimate counted its workers'
+    start-up as work and jumped from 5 to 37 minutes."""
+    a, b = tmp_path / "task" / "m" / "a", tmp_path / "task" / "m" / "b"
+    for run in (a, b):
+        run.mkdir(parents=True)
+    (a / "episodes.csv").write_text(csv_rows([10] * 50))  # 500 steps before this call
+    # progress.json of an earlier call, ahead of the checkpoint: not this call's work
+    stale = {"episodes": 80, "total_steps": 800, "lengths": [10], "time": time.time() - 60}
+    (a / "progress.json").write_text(json.dumps(stale))
+    clock = Clock()
+    bar = GridProgress(2, 0, [a, b], enabled=False, budgets=[100, 100], clock=clock)
+    assert bar.count_episodes() == "50/200"
+    clock.t = 60.0  # the workers are starting: nothing done yet
+    assert bar.count_episodes() == "50/200"
+
+    def live(run: Path, episodes: int, steps: int) -> None:
+        data = {"episodes": episodes, "total_steps": steps, "lengths": [10], "time": time.time()}
+        (run / "progress.json").write_text(json.dumps(data))
+
+    clock.t = 120.0
+    live(a, 56, 560)
+    live(b, 6, 60)  # no checkpoint yet, and its episodes count
+    # 120 steps in the minute since work began (not in the two since the call began);
+    # steps left (44 + 94) * 10 = 1380: 11.5 min
+    assert bar.count_episodes() == "62/200, left~12 min"
+    assert run_progress(b, 100, since=bar.since) == RunProgress(6, 60, 940.0, 10.0)
+    assert run_progress(b, 100) == RunProgress(0, 0, None)  # without it: the disk's
 
 
 def test_progress_bar_shows_its_own_time_left_and_not_tqdms(tmp_path: Path) -> None:
     """tqdm's own time left and rate extrapolate the count of finished runs, which in a
     population finish together ("13:31<6:32:04, 811.18s/run" for a grid that ended in 69
     minutes): the bar shows only its own estimate, from the steps still to run."""
-    header = "episode,total_steps,ret,length\n"
     run = tmp_path / "a"
     run.mkdir()
-    (run / "episodes.csv").write_text(header + "0,10,0,10\n")
+    (run / "episodes.csv").write_text(csv_rows([10]))
     file = io.StringIO()
-    bar = GridProgress(3, 1, [run], enabled=True, budgets=[10], file=file)
+    clock = Clock()
+    bar = GridProgress(3, 1, [run], enabled=True, budgets=[10], file=file, clock=clock)
     bar.poll(1, [])  # the first count: no rate yet
-    (run / "episodes.csv").write_text(header + "0,10,0,10\n1,20,0,10\n")
-    bar.history[0] = (bar.history[0][0] - 60.0, 10)  # 10 steps in a minute
-    bar.t_counted = -float("inf")
+    (run / "episodes.csv").write_text(csv_rows([10, 10]))
+    clock.t = 60.0  # 10 steps in a minute
     bar.poll(1, [])
     line = file.getvalue().rsplit("\r", 1)[-1]
     assert "episodes=2/10, left~8 min" in line  # 8 episodes of 10 steps at 10 steps a minute
     assert " 1/3 [" in line
     for tqdm_estimate in ("<", "run/s", "s/run", "?"):
         assert tqdm_estimate not in line, line
-    bar.close()
+    (run / "done.json").write_text("{}")
+    bar.close()  # counted once more: a short grid ended showing its first count
+    assert "episodes=10/10]" in file.getvalue().rsplit("\r", 1)[-1]

@@ -97,7 +97,7 @@ def test_evaluate_records_a_playable_video(
     run = runs["online"]["dir"]
     video = tmp_path / "video"
     assert main(["evaluate", str(run), "--episodes", "2", "--video", str(video)]) == 0
-    assert "recorded 1 video(s)" in capsys.readouterr().out
+    assert "recorded 1 video in" in capsys.readouterr().out
     returns = json.loads((run / "evaluation.json").read_text())["returns"]
     # Rendering does not change the episodes: the same returns as the run's own test.
     assert returns == runs["online"]["returns"][:2]

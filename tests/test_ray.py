@@ -133,3 +133,23 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
         want = read_records(tmp_path / "local" / run.key / "episodes.csv")
         assert len(got) == 400
         assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]
+
+
+def test_ray_start_up_lines_stay_out_of_the_grid_bar(ray_head: str, tmp_path: Path) -> None:
+    """Ray's log lines on connecting (its token warning, "Connecting to existing Ray
+    cluster", "Started a local Ray instance") were written into the grid's bar; now one
+    line of pporpe's says where the jobs run, above the bar, and Ray's are not shown."""
+    import re
+
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC.replace("seeds = [0, 1]", "seeds = [0]"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "pporpe.cli", "reproduce", str(spec_path), "--out",
+         str(tmp_path / "out"), "--backend", "ray", "--address", ray_head],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    err = proc.stderr.replace("\r", "\n")
+    assert not re.search(r"\b(INFO|WARNING)\b \S+\.py:\d+ -- ", err), err
+    assert re.search(r"^ray: 2 CPUs at \S+$", err, re.M), err
+    assert "grid: 100%" in err and "episodes=6/6]" in err  # counted again at the end

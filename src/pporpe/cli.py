@@ -36,9 +36,10 @@ def _train_flags() -> tuple[Any, dict[str, Any]]:
     from .cli_flags import ConfigFlags, FlagGroup
     from .online.config import OnlineConfig, TrainConfig
 
-    shared = frozenset({"env", "seed", "checkpoint_every", "eval_episodes"})
+    # the same settings of a run; checkpoint_every counts episodes of one, updates of the other
+    shared = frozenset({"env", "seed", "eval_episodes"})
     groups = {
-        "run": FlagGroup("run", TrainConfig, skip=frozenset({"learner"})),
+        "run": FlagGroup("run", TrainConfig, skip=frozenset({"learner"}), label="online"),
         "online": FlagGroup("online learner", OnlineConfig),
         "batch": FlagGroup("batch PPO", BatchConfig, skip=shared, rename={"total_steps": "steps"}),
     }
@@ -96,22 +97,35 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
         clear_run_dir(args.out)
     result = _train_until_interrupted(cfg, args.out, progress=not args.quiet)
-    steps, seconds, episodes = result.total_steps, result.train_time, len(result.records)
-    rate = f"{steps / max(seconds, 1e-9):.0f} steps/s"
-    if args.learner == "batch":
-        print(
-            f"trained {steps} steps ({result.chunks} updates, {episodes} episodes) "
-            f"in {seconds:.1f} s ({rate})"
-        )
-    elif result.records:
-        print(
-            f"trained {episodes} episodes, {steps} steps in {seconds:.1f} s ({rate}); "
-            f"last return {result.records[-1].ret:.1f}"
-        )
+    if result.already_done:
+        print(f"already done: {result.run_dir} holds this run, complete (--force starts over)")
+    trained = _trained_line(result, batch=args.learner == "batch")
+    if trained:
+        print(trained)
     if result.evaluation is not None:
         _print_eval(result.evaluation)
     print(f"run folder: {result.run_dir}")
     return 0
+
+
+def _trained_line(result: Any, batch: bool) -> str:
+    """What a run trained, in how long; an online run's last return (empty when it
+    trained no episode)."""
+    from .text import count, fixed
+
+    steps, seconds, episodes = result.total_steps, result.train_time, len(result.records)
+    rate = f"{steps / max(seconds, 1e-9):.0f} steps/s"
+    if batch:
+        return (
+            f"trained {count(steps, 'step')} ({count(result.chunks, 'update')}, "
+            f"{count(episodes, 'episode')}) in {seconds:.1f} s ({rate})"
+        )
+    if not result.records:
+        return ""
+    return (
+        f"trained {count(episodes, 'episode')}, {count(steps, 'step')} in {seconds:.1f} s "
+        f"({rate}); last return {fixed(result.records[-1].ret, 1)}"
+    )
 
 
 def _train_until_interrupted(cfg: Any, out: str, progress: bool) -> Any:
@@ -131,11 +145,12 @@ def _train_until_interrupted(cfg: Any, out: str, progress: bool) -> Any:
 
 def _print_eval(ev: object) -> None:
     from .evaluation import EvalResult
+    from .text import count, fixed
 
     assert isinstance(ev, EvalResult)
     print(
-        f"test return over {ev.episodes} episodes: median {ev.median:.2f}, "
-        f"mean {ev.mean:.2f}, IQR {ev.iqr:.2f} [{ev.q25:.2f}, {ev.q75:.2f}]"
+        f"test return over {count(ev.episodes, 'episode')}: median {fixed(ev.median)}, "
+        f"mean {fixed(ev.mean)}, IQR {fixed(ev.iqr)} [{fixed(ev.q25)}, {fixed(ev.q75)}]"
     )
 
 
@@ -145,6 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import EVAL_SEED_OFFSET, check_video_support, evaluate_policy
     from .io import atomic_write_json
     from .runs.loop import load_policy
+    from .text import count
 
     if args.video is not None:
         if args.video_episodes > args.episodes:
@@ -165,6 +181,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         seed,
         video_dir=args.video,
         video_episodes=args.video_episodes,
+        progress=not args.quiet,
     )
     out = Path(args.run_dir) / "evaluation.json"
     atomic_write_json(out, {**ev.to_dict(), "seed": seed})
@@ -173,25 +190,28 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.video is not None:
         videos = sorted(Path(args.video).glob("*.mp4"))
         names = ", ".join(v.name for v in videos)
-        print(f"recorded {len(videos)} video(s) in {args.video}: {names}")
+        print(f"recorded {count(len(videos), 'video')} in {args.video}: {names}")
     return 0
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     from .experiments.grid import load_spec, select_runs
+    from .text import count
 
     spec = load_spec(args.spec)  # every run is validated before any starts
     whole = spec
     if args.tasks or args.methods or args.seeds:  # one chunk of the grid, or one cell
         spec = select_runs(spec, args.tasks, args.methods, args.seeds)
+    seeds = count(len({r.seed for r in spec.runs}), "seed")
     print(
-        f"grid {spec.name!r}: {len(spec.runs)} runs ({', '.join(spec.methods)} x "
-        f"{', '.join(spec.envs)} x {len({r.seed for r in spec.runs})} seeds) -> {args.out}"
+        f"grid {spec.name!r}: {count(len(spec.runs), 'run')} ({', '.join(spec.methods)} x "
+        f"{', '.join(spec.envs)} x {seeds}) -> {args.out}"
     )
     outcome = _reproduce_until_interrupted(spec, whole, args)
+    were = "was" if len(outcome.skipped) == 1 else "were"
     print(
-        f"{len(outcome.done)} runs done ({len(outcome.skipped)} were already done), "
-        f"{len(outcome.failed)} failed, in {outcome.wall_time:.1f} s"
+        f"{count(len(outcome.done), 'run')} done ({len(outcome.skipped)} {were} already "
+        f"done), {len(outcome.failed)} failed, in {outcome.wall_time:.1f} s"
     )
     for key, err in outcome.failed.items():
         print(f"FAILED {key}: {err} (traceback in {args.out}/{key}/error.txt)")
@@ -326,6 +346,7 @@ def _add_evaluate(sub: Any) -> None:
         default=1,
         help="with --video: how many of the first test episodes to record (default 1)",
     )
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_evaluate)
 
 
@@ -367,7 +388,9 @@ def _add_reproduce(sub: Any) -> None:
         "--checkpoint-seconds",
         type=_nonneg_float,
         default=None,
-        help="least seconds between two checkpoints of a population (default 60)",
+        help="least seconds between two checkpoints of a population asked for by the spec's "
+        "checkpoint_every (default 60); whatever the count, every run is also checkpointed "
+        "30 s into the command, 1 min later, then every 2 min",
     )
     rp.add_argument(
         "--tasks", nargs="+", default=None, metavar="TASK", help="only these tasks of the spec"

@@ -41,6 +41,14 @@ class FlagGroup:
     """Fields that get no flag."""
     rename: Mapping[str, str] = field(default_factory=dict)
     """Field -> flag name where they differ (``total_steps`` -> ``steps``)."""
+    label: str = ""
+    """What the help calls the group before its docstring of a flag whose groups' docstrings
+    differ (default: the first word of :attr:`name`)."""
+
+    @property
+    def short(self) -> str:
+        """:attr:`label`, or the first word of :attr:`name`."""
+        return self.label or self.name.split()[0]
 
     def fields(self) -> list[tuple[str, dataclasses.Field[Any]]]:
         """``(flag name, field)`` of every field with a flag."""
@@ -137,7 +145,7 @@ class ConfigFlags:
                 doc = docs.get(f.name, f.name).replace("``", "")
                 if doc not in self._help.setdefault(flag, []):
                     self._help[flag].append(doc)
-                self._defaults.setdefault(flag, []).append((group.name, _default_text(f)))
+                self._defaults.setdefault(flag, []).append((group.short, _default_text(f)))
 
     def add_to(self, parser: argparse.ArgumentParser) -> None:
         """Add every flag, in the groups' order; none has a value unless given."""
@@ -163,7 +171,7 @@ class ConfigFlags:
         docs = self._help[flag]
         if len(docs) == 1:
             return docs[0]
-        names = [group.name.split()[0] for group, _ in self.owners[flag]]
+        names = [group.short for group, _ in self.owners[flag]]
         return " ".join(f"{name}: {doc}" for name, doc in zip(names, docs, strict=False))
 
     def _default_help(self, flag: str) -> str:
@@ -171,7 +179,7 @@ class ConfigFlags:
         defaults = self._defaults[flag]
         if len({d for _, d in defaults}) == 1:
             return f"default: {defaults[0][1]}"
-        return "; ".join(f"default {name.split()[0]}: {d}" for name, d in defaults)
+        return "; ".join(f"default {name}: {d}" for name, d in defaults)
 
     def given(self, args: argparse.Namespace) -> list[str]:
         """The flags given on the command line."""

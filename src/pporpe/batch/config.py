@@ -143,7 +143,8 @@ class BatchConfig:
     """``"orthogonal"`` (SB3's ``ortho_init=True``: hidden gain by activation, policy output
     gain 0.01, value output gain 1, zero biases) or PyTorch's ``"default"``."""
     checkpoint_every: int = 10
-    """Write a checkpoint every this many updates (>= 1), and at the end."""
+    """Updates between two checkpoints (>= 1); also one at the end, and by time whatever
+    the count (after an update): 30 s into training, 1 min later, then every 2 min."""
     eval_episodes: int = 50
     """Test episodes after training (>= 0; the paper's score is the median of 50)."""
 
@@ -176,6 +177,7 @@ class BatchConfig:
             "an int >= 0",
         )
         require(self.vec_env in get_args(VecEnvKind), "vec_env", self.vec_env, "'sync' or 'async'")
+
     def _check_optimiser_fields(self) -> None:
         """Discount, GAE, learning rate, loss coefficients and limits."""
         require(0.0 <= self.gamma < 1.0, "gamma", self.gamma, "in [0, 1)")
@@ -205,6 +207,7 @@ class BatchConfig:
             self.adv_norm,
             f"one of {list(get_args(AdvNorm))}",
         )
+
     def _check_policy_fields(self) -> None:
         """Normalisation and clipping of the task's signals, the policy's scale and its network."""
         for name in ("normalize_obs", "normalize_reward", "bootstrap_truncated", "layer_norm"):

@@ -25,8 +25,10 @@ from typing import Any
 
 from ..config import config_from_dict
 from ..io import atomic_write_text
+from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.kinds import get_kind
 from ..runs.stopping import Interrupted
+from ..text import count
 from .planning import Job
 from .progress import GridProgress
 
@@ -70,9 +72,13 @@ def run_job(
     runs: list[tuple[str, dict[str, Any]]],
     population: int = 1,
     checkpoint_seconds: float = 0.0,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
+    live_seconds: float | None = None,
 ) -> list[dict[str, Any]]:
     """Train a queue of runs of one task through one trainer of up to ``population`` slots
-    (in a worker); never raises, reports the status of every run.
+    (in a worker); never raises, reports the status of every run. ``checkpoint_seconds``
+    (for a population), ``checkpoint_within`` and ``live_seconds`` go to
+    :func:`~pporpe.runs.loop.run_queue`.
 
     ``runs`` holds ``(run_dir, config.json content)`` pairs; ``home`` keeps the queue's
     ``population.json``. Every run folder is locked while the job holds it. A run that
@@ -98,6 +104,8 @@ def run_job(
                 home=home,
                 checkpoint_seconds=checkpoint_seconds if population > 1 else 0.0,
                 stop=_STOP.is_set if _STOP is not None else None,
+                checkpoint_within=checkpoint_within,
+                live_seconds=live_seconds,
             )
         out: list[dict[str, Any]] = []
         for d, res in zip((d for d, _ in runs), results, strict=True):
@@ -153,19 +161,19 @@ def run_local(
     progress: GridProgress,
     checkpoint_seconds: float,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses.
     When ``stop()`` turns True (Ctrl-C), the running jobs stop at a safe point with their
-    checkpoints and the others are cancelled: their runs are ``"interrupted"``."""
+    checkpoints and the others are cancelled: their runs are ``"interrupted"``. The jobs
+    write their runs' live progress when the bar reads it (:attr:`GridProgress.live_seconds`)."""
     results: list[dict[str, Any]] = []
     ctx = get_context("spawn")
     event = ctx.Event()
     pool = ProcessPoolExecutor(workers, ctx, initializer=_worker_init, initargs=(event,))
     try:
-        futures = {
-            pool.submit(run_job, j.home, j.runs, j.population, checkpoint_seconds): j
-            for j in jobs
-        }
+        cadence = (checkpoint_seconds, checkpoint_within, progress.live_seconds)
+        futures = {pool.submit(run_job, j.home, j.runs, j.population, *cadence): j for j in jobs}
         pending = set(futures)
         progress.poll(min(workers, len(pending)), results)
         while pending:
@@ -191,11 +199,12 @@ def run_ray(
     progress: GridProgress,
     checkpoint_seconds: float,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
     """Run ``jobs`` as Ray tasks of one CPU each (on the cluster at ``address``, or a local
     one started for the call); every job's run statuses. When ``stop()`` turns True
     (Ctrl-C), the tasks left are cancelled: their runs keep their last checkpoints and are
-    ``"interrupted"``."""
+    ``"interrupted"``. Ray's own log lines stay off the terminal (:func:`_start_ray`)."""
     try:
         import ray
     except ImportError:
@@ -204,12 +213,13 @@ def run_ray(
         ) from None
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        _start_ray(ray, address, progress)
     try:
         # a worker that dies (killed, out of memory, its node lost) is retried: the task
         # resumes its runs from their checkpoints, with the same records
         remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
-        job_of = {remote.remote(j.home, j.runs, j.population, checkpoint_seconds): j for j in jobs}
+        cadence = (checkpoint_seconds, checkpoint_within, progress.live_seconds)
+        job_of = {remote.remote(j.home, j.runs, j.population, *cadence): j for j in jobs}
         refs = list(job_of)
         results: list[dict[str, Any]] = []
         total_cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
@@ -228,3 +238,19 @@ def run_ray(
     finally:
         if started_here:
             ray.shutdown()
+
+
+def _start_ray(ray: Any, address: str | None, progress: GridProgress) -> None:
+    """Connect to the Ray cluster at ``address`` (or start a local one) without Ray's log
+    lines on the terminal, where they would break the grid's bar (its token warning, "Started
+    a local Ray instance"; errors still show); one line above the bar says where the jobs run
+    instead. The workers' output stays on the cluster (``log_to_driver=False``)."""
+    import logging
+
+    context = ray.init(
+        address=address, include_dashboard=False, log_to_driver=False,
+        logging_level=logging.ERROR,
+    )  # fmt: skip
+    cpus = int(ray.cluster_resources().get("CPU", 0))
+    where = getattr(context, "address_info", {}).get("gcs_address") or address or "local"
+    progress.note(f"ray: {count(cpus, 'CPU')} at {where}")

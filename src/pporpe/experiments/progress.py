@@ -1,4 +1,6 @@
-"""The grid's progress bar and its estimate of the time left, read from the run folders."""
+"""The grid's progress bar and its estimate of the time left, read from the run folders:
+the live progress the workers write every few seconds (``progress.json``,
+:class:`~pporpe.runs.cadence.LiveProgress`), else the episodes checkpointed so far."""
 
 from __future__ import annotations
 
@@ -6,41 +8,37 @@ import contextlib
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from ..runs.cadence import LIVE_SECONDS, RECENT_EPISODES, read_live
 
 __all__ = ["RECENT_EPISODES", "GridProgress", "RunProgress", "run_progress"]
 
 
 @dataclass(frozen=True)
 class RunProgress:
-    """What a run has on disk, as the progress bar reads it."""
+    """How far a run got, as the progress bar reads it."""
 
     episodes: int
-    """Training episodes logged, at most the budget (all of it once the run is done)."""
+    """Training episodes done, at most the budget (all of it once the run is done)."""
     steps: int
-    """Environment steps of the logged episodes (the last row's ``total_steps``)."""
+    """Environment steps of those episodes (the last one's ``total_steps``)."""
     steps_left: float | None
-    """Guess of the steps still to run: the episodes left times the mean length of the last
-    :data:`RECENT_EPISODES` logged; 0 once done; ``None`` before the first checkpoint."""
+    """Guess of the steps still to run: the episodes left times :attr:`length`; 0 once done;
+    ``None`` before the run's first episode."""
+    length: float | None = None
+    """Mean length of the run's last :data:`RECENT_EPISODES` episodes (None: none yet)."""
 
 
-RECENT_EPISODES = 10
-"""Logged episodes whose mean length stands for the length of the episodes to come."""
-
-
-def run_progress(run_dir: Path, budget: int) -> RunProgress:
-    """Read a run's ``episodes.csv`` (written at each checkpoint) for the progress bar.
-
-    Episodes grow longer as a run learns (Ant's and HalfCheetah's from 20 steps to 1000),
-    so the time left is estimated in environment steps, not in episodes. A file without
-    the ``total_steps`` and ``length`` columns, or with values that are not numbers, counts
-    every episode as one step. Only the last rows are parsed: this runs every half minute
-    over every run of a grid, and :func:`pporpe.runs.logger.read_records` costs about 20 us
-    a row (a second per count for 30 runs of 2000 episodes).
-    """
-    done = (run_dir / "done.json").exists()
+def _from_csv(run_dir: Path) -> tuple[int, int, float | None]:
+    """Rows, steps and the mean recent episode length of ``episodes.csv`` (written at each
+    checkpoint). A file without the ``total_steps`` and ``length`` columns, or with values
+    that are not numbers, counts every episode as one step. Only the last rows are parsed:
+    :func:`pporpe.runs.logger.read_records` costs about 20 us a row (a second per count
+    for 30 runs of 2000 episodes)."""
     try:
         with open(run_dir / "episodes.csv", encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()
@@ -48,8 +46,8 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
         lines = []
     rows = [ln for ln in lines[1:] if ln]
     if not rows:
-        return RunProgress(budget, 0, 0.0) if done else RunProgress(0, 0, None)
-    header, n = lines[0].split(","), min(len(rows), budget)
+        return 0, 0, None
+    header = lines[0].split(",")
     steps, length = len(rows), 1.0
     if "total_steps" in header and "length" in header:
         i_steps, i_len = header.index("total_steps"), header.index("length")
@@ -57,25 +55,54 @@ def run_progress(run_dir: Path, budget: int) -> RunProgress:
         with contextlib.suppress(ValueError, IndexError):
             recent = [float(r.split(",")[i_len]) for r in rows[-RECENT_EPISODES:]]
             steps, length = int(float(rows[-1].split(",")[i_steps])), sum(recent) / len(recent)
+    return len(rows), steps, length
+
+
+def run_progress(run_dir: Path, budget: int, since: float | None = None) -> RunProgress:
+    """How far a run got: its live progress if written at or after the wall time ``since``
+    (:func:`~pporpe.runs.cadence.read_live`; a worker writes it every few seconds), else
+    its ``episodes.csv``.
+
+    Episodes grow longer as a run learns (Ant's and HalfCheetah's from 20 steps to 1000),
+    so the time left is estimated in environment steps, not in episodes.
+    """
+    done = (run_dir / "done.json").exists()
+    live = read_live(run_dir, since) if since is not None and not done else None
+    if live is not None:
+        lengths = live["lengths"]
+        n, steps = live["episodes"], live["total_steps"]
+        length = sum(lengths) / len(lengths) if lengths else None
+    else:
+        n, steps, length = _from_csv(run_dir)
     if done:
-        return RunProgress(budget, steps, 0.0)
-    return RunProgress(n, steps, (budget - n) * length)
+        return RunProgress(budget, steps, 0.0, length)
+    n = min(n, budget)
+    return RunProgress(n, steps, None if length is None else (budget - n) * length, length)
+
+
+def _minutes(seconds: float) -> str:
+    """``"40 s"`` under a minute, ``"12 min"``, ``"3.4 h"`` from an hour on."""
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 3600 else f"{seconds / 3600:.1f} h"
 
 
 class GridProgress:
     """One overall progress bar: runs done (read from the run folders, so that runs
     finishing inside a population count at once), failed, jobs running, and, for runs with
-    an episode budget, the episodes on disk with the time left at their rate (a population
-    finishes its runs together, so the run count alone stays at 0 for most of a task)."""
+    an episode budget, the episodes done with the time left at this call's step rate (a
+    population finishes its runs together, so the run count alone stays at 0 for most of a
+    task)."""
 
     BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
     """tqdm's default bar without its own time left and rate ("<6:32:04, 811.18s/run"):
     they extrapolate the count of finished runs, which in populations finish together, so
     the only estimate shown is the bar's own ``left~``, from the steps still to run."""
-    COUNT_EVERY_S = 30.0
-    """Seconds between two counts of the runs' episodes (each reads every episodes.csv)."""
-    RATE_COUNTS = 10
-    """Counts (the last five minutes) whose rate gives the time left."""
+    COUNT_EVERY_S = 10.0
+    """Seconds between two counts of the runs' episodes on a terminal (three times as long
+    into a log file, where every change of the bar is a line)."""
+    RATE_WINDOW_S = 300.0
+    """The counts of the last five minutes give the rate of the time left."""
 
     def __init__(
         self,
@@ -85,6 +112,7 @@ class GridProgress:
         enabled: bool,
         budgets: list[int | None] | None = None,
         file: Any = None,
+        clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.bar: Any = None
         self.initial, self.runs = done, runs
@@ -93,14 +121,26 @@ class GridProgress:
             (r, b) for r, b in zip(runs, budgets or [None] * len(runs), strict=True) if b
         ]
         self.episodes_total = sum(b for _, b in self.episode_runs)
+        self.clock = clock
+        self.since = time.time()
+        """Wall time of the bar's start: live progress written before it is an earlier
+        call's, ahead of the checkpoints the runs resume from."""
+        self.base: dict[Path, int] | None = None
+        """Every run's steps at the first count: the steps this call started from."""
         self.history: list[tuple[float, int]] = []
+        """``(time, steps done in this call)`` of the counts of the last
+        :attr:`RATE_WINDOW_S` seconds."""
         self.t_counted = -math.inf
         self.episodes_text = ""
+        self.live_seconds = LIVE_SECONDS if enabled else None
+        """How often the jobs write their runs' live progress for this bar (None: never)."""
         self.file = file if file is not None else sys.stderr
         # On a terminal the bar's clock moves, so every poll redraws it; asked once.
         isatty = getattr(self.file, "isatty", None)
         self.redraw_every_poll = isatty is not None and bool(isatty())
+        self.count_every = self.COUNT_EVERY_S * (1 if self.redraw_every_poll else 3)
         self.shown: tuple[Any, ...] | None = None
+        self.last_poll: tuple[int, list[dict[str, Any]]] = (0, [])
         if enabled:
             from tqdm import tqdm
 
@@ -114,40 +154,72 @@ class GridProgress:
                 bar_format=self.BAR_FORMAT,
             )
 
+    def note(self, line: str) -> None:
+        """A line above the bar (nothing without a bar)."""
+        if self.bar is not None:
+            self.bar.write(line, file=self.file)
+
     def count_episodes(self) -> str:
-        """``"N/M, left~T min"``: episodes on disk and the time left, the steps still to run
-        (:func:`run_progress`) at the step rate of the last few counts. Episodes grow longer
-        as runs learn, so neither the episode rate nor an old step rate is a good guess."""
-        progress = [run_progress(r, b) for r, b in self.episode_runs]
-        n = sum(p.episodes for p in progress)
-        steps = sum(p.steps for p in progress)
-        now = time.perf_counter()
-        self.history = [*self.history[-(self.RATE_COUNTS - 1) :], (now, steps)]
+        """``"N/M, left~T"``: episodes done and the time left, the steps still to run
+        (:func:`run_progress`) at the rate of the steps done in this call
+        (:meth:`time_left`). Episodes grow longer as runs learn, so neither the episode
+        rate nor an old step rate is a good guess."""
+        progress = {r: run_progress(r, b, self.since) for r, b in self.episode_runs}
+        n = sum(p.episodes for p in progress.values())
+        if self.base is None:
+            self.base = {r: p.steps for r, p in progress.items()}
+        gained = sum(max(0, p.steps - self.base[r]) for r, p in progress.items())
+        now = self.clock()
+        recent = [(t, g) for t, g in self.history if now - t <= self.RATE_WINDOW_S]
+        self.history = [*recent, (now, gained)]
         text = f"{n}/{self.episodes_total}"
-        t0, steps0 = self.history[0]
-        gained = steps - steps0
-        known = [p.steps_left for p in progress if p.steps_left is not None]
-        if gained > 0 and n < self.episodes_total and known:
-            # A run without a checkpoint yet is guessed at the mean of the others.
-            steps_left = sum(known) * len(progress) / len(known)
-            left = steps_left * (now - t0) / gained
-            text += f", left~{left / 60:.0f} min"
+        left = self.time_left(progress)
+        if left is not None and n < self.episodes_total:
+            text += f", left~{_minutes(left)}"
         return text
+
+    def time_left(self, progress: dict[Path, RunProgress]) -> float | None:
+        """Seconds left: the steps still to run at the rate of this call's counts of the
+        last five minutes, from the last count before work began in them (a worker's
+        start-up is no work).
+        A run with no episode yet has its whole budget left at the recent episode length
+        of the other runs of its task (or of all runs); None without a rate or a length."""
+        t_now, g_now = self.history[-1]
+        start = [(t, g) for t, g in self.history if g == self.history[0][1]][-1]
+        if g_now <= start[1]:
+            return None
+        lengths: dict[str, list[float]] = {}
+        for run, p in progress.items():
+            if p.length is not None:
+                lengths.setdefault(run.parent.parent.name, []).append(p.length)
+        every = [x for task in lengths.values() for x in task]
+        steps_left = 0.0
+        for (run, budget), p in zip(self.episode_runs, progress.values(), strict=True):
+            if p.steps_left is not None:
+                steps_left += p.steps_left
+                continue
+            guess = lengths.get(run.parent.parent.name) or every
+            if not guess:
+                return None
+            steps_left += budget * sum(guess) / len(guess)
+        return steps_left * (t_now - start[0]) / (g_now - start[1])
 
     def poll(self, jobs_running: int, results: list[dict[str, Any]]) -> None:
         """Count finished runs on disk and failed ones in the jobs' results; show the jobs
-        still running and, every half minute, the episodes on disk. On a terminal the bar is
+        still running and, every :attr:`count_every` seconds, the episodes done. On a
+        terminal the bar is
         redrawn at every poll (its clock moves); into a file or a pipe only when what it
         shows changed, so that a log of a long grid holds a line per change, not one every
         two seconds."""
         if self.bar is None:
             return
+        self.last_poll = (jobs_running, results)
         done = sum((r / "done.json").exists() for r in self.runs)
         self.failed = sum(res["status"] == "failed" for res in results)
         self.bar.n = self.initial + done + self.failed
-        if self.episode_runs and time.perf_counter() - self.t_counted >= self.COUNT_EVERY_S:
+        if self.episode_runs and self.clock() - self.t_counted >= self.count_every:
             self.episodes_text = self.count_episodes()
-            self.t_counted = time.perf_counter()
+            self.t_counted = self.clock()
         postfix: dict[str, Any] = {"jobs": jobs_running, "failed": self.failed}
         if self.episodes_text:
             postfix["episodes"] = self.episodes_text
@@ -158,6 +230,9 @@ class GridProgress:
             self.shown = shown
 
     def close(self) -> None:
-        """Close the bar (its last state stays on the terminal)."""
+        """Count once more, then close the bar (its last state stays on the terminal; a
+        short grid showed the episodes of its first count, "episodes=0/6", when done)."""
         if self.bar is not None:
+            self.t_counted = -math.inf
+            self.poll(*self.last_poll)
             self.bar.close()

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from ..envs import make_env
+from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.folder import CHECKPOINT, check_checkpoint
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
@@ -46,7 +47,9 @@ K = 1 to 30): pass ``--population 30`` for a grid it trains. Batch runs
 (benchmarks/results/batch_population.json)."""
 
 DEFAULT_CHECKPOINT_SECONDS = 60.0
-"""At most one population checkpoint a minute: a population's state is megabytes."""
+"""At most one population checkpoint a minute asked for by the runs' ``checkpoint_every``:
+a population's state is megabytes. (By time, whatever the count, every run is checkpointed
+30 s into a call, a minute later, then every 2 minutes: :mod:`pporpe.runs.cadence`.)"""
 
 
 @dataclass(frozen=True)
@@ -75,8 +78,9 @@ def _is_count(x: Any) -> bool:
 
 
 def _check_arguments(
-    backend: str, workers: int | None, address: str | None, population: int, every: float
-) -> None:
+    backend: str, workers: int | None, address: str | None, population: int, every: float,
+    within: float,
+) -> None:  # fmt: skip
     """Refuse bad arguments before any work, naming the parameter and what it allows."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}; got {backend!r}")
@@ -91,6 +95,10 @@ def _check_arguments(
     ):
         raise ValueError(
             f"checkpoint_seconds must be a number >= 0; got checkpoint_seconds={every!r}"
+        )
+    if isinstance(within, bool) or not isinstance(within, int | float) or not within >= 0:
+        raise ValueError(
+            f"checkpoint_within must be a number >= 0; got checkpoint_within={within!r}"
         )
 
 
@@ -129,15 +137,17 @@ def _check_checkpoints(jobs: list[Job]) -> None:
 
 def _run_jobs(
     jobs: list[Job], backend: str, workers: int, address: str | None,
-    bar: GridProgress, checkpoint_seconds: float, stop: Callable[[], bool] | None,
+    bar: GridProgress, seconds: tuple[float, float], stop: Callable[[], bool] | None,
 ) -> list[dict[str, Any]]:  # fmt: skip
-    """Every job's run statuses, from the chosen backend; the bar is closed after."""
+    """Every job's run statuses, from the chosen backend (``seconds``: checkpoint_seconds and
+    checkpoint_within); the bar is closed after."""
+    least, within = seconds
     try:
         if not jobs:
             return []
         if backend == "local":
-            return run_local(jobs, min(workers, len(jobs)), bar, checkpoint_seconds, stop)
-        return run_ray(jobs, address, bar, checkpoint_seconds, stop)
+            return run_local(jobs, min(workers, len(jobs)), bar, least, stop, within)
+        return run_ray(jobs, address, bar, least, stop, within)
     finally:
         bar.close()
 
@@ -172,6 +182,7 @@ def reproduce(
     checkpoint_seconds: float = DEFAULT_CHECKPOINT_SECONDS,
     whole: GridSpec | None = None,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> GridOutcome:
     """Run every run of ``spec`` into ``out`` (skipping finished ones); return the outcome.
 
@@ -179,8 +190,11 @@ def reproduce(
     then lists all of its runs, so that the report counts what is still missing.
 
     Online runs of one task (batch runs of one task and shape) are trained ``population``
-    at a time by one worker (:func:`~.planning.plan_jobs`); their checkpoints are written
-    at most every ``checkpoint_seconds``. ``status.json`` in ``out`` counts the runs of the
+    at a time by one worker (:func:`~.planning.plan_jobs`); the checkpoints their
+    ``checkpoint_every`` asks for are written at most every ``checkpoint_seconds``. Whatever
+    the count, every run is also checkpointed by time: after a quarter of
+    ``checkpoint_within`` seconds, half of it later, then every ``checkpoint_within``
+    seconds (:mod:`pporpe.runs.cadence`). ``status.json`` in ``out`` counts the runs of the
     whole grid (:mod:`.merge`); a call that trains nothing leaves it and ``grid.json`` as
     they are.
 
@@ -188,7 +202,8 @@ def reproduce(
     reproduce`` passes Ctrl-C's request), every running run is checkpointed at its next
     step and the call returns with those runs, and the ones not started, ``interrupted``.
     """
-    _check_arguments(backend, workers, address, population, checkpoint_seconds)
+    seconds = (checkpoint_seconds, checkpoint_within)
+    _check_arguments(backend, workers, address, population, *seconds)
     out_dir = Path(out).resolve()
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"the results folder {out} is an existing file; choose another --out")
@@ -206,9 +221,9 @@ def reproduce(
     listing_changed = write_grid_summary(out_dir, listed)
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
-    results = _run_jobs(jobs, backend, n_workers, address, bar, checkpoint_seconds, stop)
+    results = _run_jobs(jobs, backend, n_workers, address, bar, seconds, stop)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
-    seconds = outcome.wall_time if jobs else 0.0
-    write_status(out_dir, outcome.failed, seconds, backend, bool(jobs) or listing_changed)
+    wall = outcome.wall_time if jobs else 0.0
+    write_status(out_dir, outcome.failed, wall, backend, bool(jobs) or listing_changed)
     return outcome

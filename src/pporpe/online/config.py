@@ -383,7 +383,8 @@ class TrainConfig:
     steps: int | None = None
     """Training length in environment steps (>= 1); ``None`` when ``episodes`` sets it."""
     checkpoint_every: int = 10
-    """Write a checkpoint every this many episodes (>= 1), and at the end."""
+    """Episodes between two checkpoints (>= 1); also one at the end, and by time whatever
+    the count (mid-episode): 30 s into training, 1 min later, then every 2 min."""
     eval_episodes: int = 50
     """Test episodes after training (>= 0; the paper's score is the median of 50)."""
     learner: OnlineConfig = field(default_factory=OnlineConfig)

@@ -7,7 +7,9 @@ A run folder holds:
 * ``tensorboard/``    the same scalars for TensorBoard;
 * ``checkpoint.pt``   the trainer's state, the records and the wall time, written atomically;
 * ``evaluation.json`` median / mean / IQR of the test episodes (when requested);
-* ``done.json``       written last: the run is complete, with its counters.
+* ``done.json``       written last: the run is complete, with its counters;
+* ``progress.json``   while a grid trains the run: its episodes and steps so far, for the
+  grid's progress bar (:class:`~pporpe.runs.cadence.LiveProgress`), removed at its end.
 
 Folders written by earlier versions are read (:func:`read_config`) and resumed as the same
 run: :mod:`pporpe.runs.migrate` upgrades what they hold.
@@ -24,6 +26,7 @@ import torch
 
 from ..config import config_from_dict, config_to_dict
 from ..io import atomic_path, atomic_write_json
+from .cadence import LIVE_FILE
 from .kinds import LearnerKind, get_kind
 from .migrate import upgrade_config
 
@@ -132,7 +135,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
 
 
 RUN_FILES = ("config.json", CHECKPOINT, "episodes.csv", "evaluation.json", "done.json",
-             "error.txt", "tensorboard")  # fmt: skip
+             "error.txt", "tensorboard", LIVE_FILE)  # fmt: skip
 """What a run writes into its folder (``--force`` removes these, and nothing else)."""
 
 

@@ -8,8 +8,8 @@ to K slots (K = 1 for a single run; the online learner trains K runs in lockstep
    folder holds the same run; a complete run is skipped);
 2. starts the run in a free slot, fresh or from its ``checkpoint.pt``;
 3. advances all slots together, logging every episode through the one sink
-   (:class:`~pporpe.runs.logger.RunLogger`) and checkpointing at the trainer's cadence
-   after a finiteness check;
+   (:class:`~pporpe.runs.logger.RunLogger`) and checkpointing after a finiteness check
+   when one is due, by count or by time (:mod:`.cadence`);
 4. when its budget is spent: a last checkpoint, test episodes of the deterministic policy
    (``evaluation.json``), then ``done.json``; the slot takes the next run of the queue.
 
@@ -23,13 +23,13 @@ step and produces the same numbers as an uninterrupted one; each run's own
 ``checkpoint.pt`` is written when it finishes.
 When the queue is empty and at most half the slots are busy, the trainer is compacted to
 the busy runs (idle slots of a population would still cost compute). A killed run loses
-at most the work since its last checkpoint; records never have a gap or a duplicate.
+the work since its last checkpoint, at most about 2 minutes of it (:mod:`.cadence`);
+records never have a gap or a duplicate.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -44,6 +44,8 @@ from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
+from ..text import fixed
+from .cadence import CHECKPOINT_WITHIN_S, RECENT_EPISODES, CheckpointClock, LiveProgress
 from .folder import (
     CHECKPOINT,
     check_checkpoint,
@@ -85,6 +87,8 @@ class RunResult:
     """The last extra scalars the trainer reported (a batch update's statistics)."""
     error: str | None = None
     """Why the run failed alone (also in its ``error.txt``), or None."""
+    already_done: bool = False
+    """Whether the run was complete before this call (nothing was trained or evaluated)."""
 
 
 OnChunk = Callable[[Trainer, Progress, float], None]
@@ -104,6 +108,7 @@ def _finished_result(run: Path) -> RunResult:
         int(done.get("total_steps", 0)),
         float(done.get("train_time", 0.0)),
         chunks,
+        already_done=True,
     )
 
 
@@ -120,7 +125,8 @@ class _Run:
         self.logger = RunLogger(run)
         self.t_start = time.perf_counter()
         self.bar: Any = None
-        self._want_bar = bar
+        self.want_bar = bar
+        """Whether the run shows progress bars (of its training and its test episodes)."""
 
     def resume(self, state: dict[str, Any] | None, trainer: Trainer, slot: int) -> None:
         if state is not None:
@@ -128,7 +134,7 @@ class _Run:
             self.wall_offset = float(state["wall_time"])
         self.resumed_from = trainer.counters(slot)["chunks"]
         self.t_start = time.perf_counter()
-        if self._want_bar:
+        if self.want_bar:
             from tqdm import tqdm
 
             total, unit = self.kind.budget(self.cfg)
@@ -163,8 +169,8 @@ class _Run:
             self.logger.scalars("update", self.last, report.total_steps)
         if self.bar is not None:
             self.bar.update(report.bar_advance)
-            if self.records:
-                self.bar.set_postfix(ep=len(self.records) - 1, ret=f"{self.records[-1].ret:.1f}")
+            if self.records:  # the last episode by its number from 1, as the bar counts
+                self.bar.set_postfix(ep=len(self.records), ret=fixed(self.records[-1].ret, 1))
         return new
 
     def state(self, trainer: Trainer, slot: int) -> dict[str, Any]:
@@ -200,6 +206,8 @@ class _Hooks:
     on_chunk: OnChunk | None = None
     checkpoint_seconds: float = 0.0
     stop: Callable[[], bool] | None = None
+    checkpoint_within: float = CHECKPOINT_WITHIN_S
+    live_seconds: float | None = None
 
 
 class _Queue:
@@ -231,7 +239,8 @@ class _Queue:
         self.names = population.names if population is not None else [str(d) for d in dirs]
         self.trainer = kind.make_trainer(cfgs[pending[0]], len(self.packing.slots))
         self.books: dict[int, _Run] = {}
-        self.last_checkpoint = time.perf_counter()
+        self.clock = CheckpointClock(hooks.checkpoint_seconds, hooks.checkpoint_within)
+        self.live = LiveProgress(hooks.live_seconds)
 
     @property
     def slots(self) -> list[int | None]:
@@ -295,6 +304,7 @@ class _Queue:
             book.run, book.records, None, book.resumed_from, error=message, chunks=0
         )
         self.trainer.stop(slot)
+        self.live.remove(book.run)
         self.fill(slot)
 
     def finish(self, slot: int) -> None:
@@ -315,11 +325,13 @@ class _Queue:
         evaluation = None
         if cfg.eval_episodes > 0:
             evaluation = evaluate_policy(
-                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET
-            )
+                act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET,
+                progress=book.want_bar,
+            )  # fmt: skip
             atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
         done = {"episodes": len(book.records), **counters, "train_time": total_time}
         atomic_write_json(book.run / "done.json", done)
+        self.live.remove(book.run)
         self.results[i] = RunResult(
             book.run, book.records, evaluation, book.resumed_from, counters["total_steps"],
             total_time, counters["chunks"], book.last,
@@ -381,26 +393,38 @@ class _Queue:
             self.write_packing()
             return
         reports = self.trainer.advance()
-        due = self.report(reports)
+        by_count = self.report(reports)
         changed = self.settle(reports)
-        if changed and self.population is not None and self.books:
-            # the packing changed (a run ended, its slot was refilled, the trainer shrank):
-            # checkpoint every run at this step, so that a resumed queue continues with
-            # the same packing at the same step, bit for bit
-            due, self.last_checkpoint = True, -math.inf
-        elapsed = time.perf_counter() - self.last_checkpoint
-        if due and elapsed >= self.hooks.checkpoint_seconds:
+        # the packing changed (a run ended, its slot was refilled, the trainer shrank):
+        # checkpoint every run at this step, so that a resumed queue continues with the
+        # same packing at the same step, bit for bit
+        repacked = changed and self.population is not None and bool(self.books)
+        if repacked or self.clock.due(by_count):
             self.checkpoint()
-            self.last_checkpoint = time.perf_counter()
+            self.clock.written()
             changed = True
         if changed:
             self.write_packing()
+        if self.live.due():
+            self.write_live()
+
+    def write_live(self) -> None:
+        """Every busy run's live progress (:class:`~.cadence.LiveProgress`)."""
+        self.live.write(
+            [
+                (book.run, len(book.records), self.trainer.counters(slot)["total_steps"],
+                 [r.length for r in book.records[-RECENT_EPISODES:]])
+                for slot, book in self.books.items()
+            ]
+        )  # fmt: skip
 
     def interrupt(self) -> None:
         """Stop on request, between two units of work: every busy run's checkpoint at this
         step, then :class:`~pporpe.runs.stopping.Interrupted` (how far each run got)."""
         self.checkpoint()
         self.write_packing()
+        for book in self.books.values():
+            self.live.remove(book.run)
         raise Interrupted({book.run: len(book.records) for book in self.books.values()})
 
     def run(self) -> None:
@@ -459,14 +483,21 @@ def run_queue(
     checkpoint_seconds: float = 0.0,
     num_threads: int = 1,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
+    live_seconds: float | None = None,
 ) -> list[RunResult]:
     """Train every ``(config, run_dir)`` of ``runs`` (one learner kind, one task and network
     shape) through one trainer with up to ``capacity`` slots, refilling a slot when its run
     finishes. Returns one result per run, in order.
 
     ``home`` (required when ``capacity`` > 1) holds the population's checkpoint and
-    ``population.json``. A due checkpoint is written at most every ``checkpoint_seconds``
-    (0: whenever due); every run also gets one when it finishes. ``on_episode`` is called
+    ``population.json``. A checkpoint is due when a run's ``checkpoint_every`` count asks
+    for one, written at most every ``checkpoint_seconds`` (0: whenever asked), or by time,
+    whatever the count: after a quarter of ``checkpoint_within`` seconds (default
+    :data:`~.cadence.CHECKPOINT_WITHIN_S`, 2 minutes), half of it later, then every
+    ``checkpoint_within`` seconds (``math.inf``: by count only; :mod:`.cadence`); every run
+    also gets one when it finishes. ``live_seconds``: write each busy run's
+    ``progress.json`` that often (None: never; a grid's bar reads it). ``on_episode`` is called
     after every episode, ``on_chunk`` after every unit of work of a run. ``num_threads``:
     torch's intra-op threads while training (1: the setting under which the same seed gives
     the same numbers), the caller's setting restored when the call returns. (One setting
@@ -479,6 +510,10 @@ def run_queue(
     """
     if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
         raise ValueError(f"num_threads must be an int >= 1; got num_threads={num_threads!r}")
+    for name, value in (("checkpoint_seconds", checkpoint_seconds),
+                        ("checkpoint_within", checkpoint_within)):  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+            raise ValueError(f"{name} must be a number >= 0; got {name}={value!r}")
     if not runs:
         return []
     if capacity > 1 and home is None:
@@ -499,7 +534,10 @@ def run_queue(
             PopulationCheckpoint(Path(home), dirs) if home is not None and capacity > 1 else None
         )
         _check_checkpoints([dirs[i] for i in pending], population)
-        hooks = _Hooks(progress, on_episode, on_chunk, checkpoint_seconds, stop)
+        hooks = _Hooks(
+            progress, on_episode, on_chunk, checkpoint_seconds, stop, checkpoint_within,
+            live_seconds,
+        )  # fmt: skip
         slots = max(1, min(capacity, len(pending)))
         with _torch_threads(num_threads):
             queue = _Queue(kind, cfgs, dirs, pending, slots, population, hooks, results)
@@ -526,12 +564,16 @@ def train(
     on_chunk: OnChunk | None = None,
     num_threads: int = 1,
     stop: Callable[[], bool] | None = None,
+    checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> RunResult:
     """Train one run of any learner kind as configured, writing everything into
     ``run_dir``; resumes from its checkpoint when one exists for the same config.
     ``num_threads``: torch's threads while training, the caller's setting restored after;
     ``stop``: asked after every unit of work, True checkpoints the run and raises
-    :class:`~pporpe.runs.stopping.Interrupted` (see :func:`run_queue`).
+    :class:`~pporpe.runs.stopping.Interrupted`. A checkpoint is written every
+    ``cfg.checkpoint_every`` episodes (online) or updates (batch), and by time: at the
+    latest ``checkpoint_within`` seconds after the last one (the first after a quarter of
+    it; see :func:`run_queue`).
 
     Raises :class:`NonFiniteError` if the run failed on a non-finite value (its last good
     checkpoint is kept).
@@ -543,6 +585,7 @@ def train(
         on_chunk=on_chunk,
         num_threads=num_threads,
         stop=stop,
+        checkpoint_within=checkpoint_within,
     )
     if result.error is not None:
         raise NonFiniteError(result.error)
