@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -41,9 +42,16 @@ def _free_port() -> int:
 
 @pytest.fixture(scope="module")
 def ray_head(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A Ray head of this module's own, with its own home folder: Ray keeps an
+    authentication token in ~/.ray once a local instance has made one, and a head and
+    client that disagree about it refuse to connect; these tests neither read nor leave one
+    in the user's home."""
     ray_bin = str(Path(sys.executable).with_name("ray"))
     port = _free_port()
     tmp = tmp_path_factory.mktemp("ray")
+    home = tmp_path_factory.mktemp("home")
+    saved_home = os.environ.get("HOME")
+    os.environ["HOME"] = str(home)
     start = subprocess.run(
         [
             ray_bin,
@@ -65,11 +73,15 @@ def ray_head(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         text=True,
         timeout=180,
     )
-    assert start.returncode == 0, start.stdout + start.stderr
     try:
+        assert start.returncode == 0, start.stdout + start.stderr
         yield f"127.0.0.1:{port}"
     finally:
         subprocess.run([ray_bin, "stop", "--force"], capture_output=True, timeout=120)
+        if saved_home is None:
+            os.environ.pop("HOME", None)
+        else:
+            os.environ["HOME"] = saved_home
 
 
 def test_ray_backend_matches_local_backend(ray_head: str, tmp_path: Path) -> None:
