@@ -249,10 +249,21 @@ def make_env(
         raise _missing_dependency(env_id, entry_point, exc) from None
     if hasattr(env.unwrapped, "physicsClientId"):
         env = QuietBulletStart(env)
-    act_space, obs_space = env.action_space, env.observation_space
-    if not isinstance(act_space, spaces.Box):
+    problem = _spaces_problem(env_id, env.action_space, env.observation_space)
+    if problem is not None:
         env.close()
-        raise ValueError(
+        raise ValueError(problem)
+    if seed is not None:
+        env.action_space.seed(seed)
+        env.observation_space.seed(seed)
+    return env
+
+
+def _spaces_problem(env_id: str, act_space: Any, obs_space: Any) -> str | None:
+    """Why a task's spaces do not suit the learners (a Box action space, 1-D with finite
+    bounds; a 1-D Box observation space), or None."""
+    if not isinstance(act_space, spaces.Box):
+        return (
             f"environment {env_id!r} has action space {act_space}, but a "
             f"gymnasium.spaces.Box (continuous actions) is required. Aliases: "
             f"{_aliases_text()}"
@@ -260,21 +271,16 @@ def make_env(
     if len(act_space.shape) != 1 or not (
         np.all(np.isfinite(act_space.low)) and np.all(np.isfinite(act_space.high))
     ):
-        env.close()
-        raise ValueError(
+        return (
             f"environment {env_id!r} has action space {act_space}, but a 1-D Box with "
             "finite bounds is required (policies map into the bounds)"
         )
     if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
-        env.close()
-        raise ValueError(
+        return (
             f"environment {env_id!r} has observation space {obs_space}, but a 1-D "
             "gymnasium.spaces.Box is required"
         )
-    if seed is not None:
-        act_space.seed(seed)
-        obs_space.seed(seed)
-    return env
+    return None
 
 
 _ANSI_CODES = re.compile(r"\x1b\[[0-9;]*m")
