@@ -100,6 +100,14 @@ def test_a_stop_checkpoints_at_that_step_and_resumes_to_the_same_numbers(
 # ------------------------------------------------------------------------------------
 # The commands, in a subprocess, as a user sees them
 # ------------------------------------------------------------------------------------
+def _default_sigint() -> None:
+    """In the child before it runs: SIGINT handled and delivered as in a terminal's job,
+    whatever the test process inherited or set (an ignored or blocked SIGINT is inherited
+    across exec, and a child that ignores Ctrl-C would train to its end)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def launch(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "pporpe.cli", *args],
@@ -108,6 +116,7 @@ def launch(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[st
         text=True,
         start_new_session=True,  # its own process group, as a shell's job
         env=env,
+        preexec_fn=_default_sigint,
     )
 
 
@@ -133,7 +142,7 @@ def one_line(proc: subprocess.Popen[str], timeout: float = 120) -> tuple[int, st
     return proc.returncode, lines[0]
 
 
-TRAIN = ("train", "--env", "pendulum", "--episodes", "300", "--checkpoint-every", "1",
+TRAIN = ("train", "--env", "pendulum", "--episodes", "20000", "--checkpoint-every", "1",
          "--eval-episodes", "0", "--layers", "1", "--units", "8", "--quiet")  # fmt: skip
 
 
@@ -178,7 +187,7 @@ units = 8
 
 [[tasks]]
 env = "pendulum"
-episodes = 300
+episodes = 20000
 """
 
 
