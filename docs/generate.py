@@ -168,17 +168,28 @@ def readme_results(root: Path) -> list[str]:
     head = ["task", "settings", "mean score: PPO / PPO-RB / PPO-RPE", "P(PPO-RPE > PPO)",
             "P(PPO-RPE > PPO-RB)", "final score", "early learning",
             "stronger regularisation"]  # fmt: skip
-    return [README_START, *table(head, rows), README_END]
+    return table(head, rows)
+
+
+def rewrite_blocks(text: str, start: str, end: str, blocks: list[list[str]], where: str) -> str:
+    """``text`` with its k-th block between the markers ``start`` ... ``end`` replaced by
+    the lines ``blocks[k]`` (the markers kept); a ValueError naming ``where`` unless the
+    markers enclose exactly ``len(blocks)`` blocks."""
+    head, *rest = text.split(start)
+    if len(rest) != len(blocks) or any(end not in after for after in rest):
+        raise ValueError(
+            f"{where} lacks {len(blocks)} block(s) between the markers {start!r} ... {end!r}"
+        )
+    out = [head]
+    for block, after in zip(blocks, rest, strict=True):
+        out.append("\n".join([start, *block, end]) + after[after.index(end) + len(end) :])
+    return "".join(out)
 
 
 def with_readme_results(root: Path) -> str:
     """README.md with the block between the results markers rewritten."""
     text = (root / "README.md").read_text(encoding="utf-8")
-    start, end = text.find(README_START), text.find(README_END)
-    if start < 0 or end < start:
-        raise ValueError(f"README.md lacks the markers {README_START!r} ... {README_END!r}")
-    block = "\n".join(readme_results(root))
-    return text[:start] + block + text[end + len(README_END) :]
+    return rewrite_blocks(text, README_START, README_END, [readme_results(root)], "README.md")
 
 
 def report_page(root: Path, grid: str, title: str, lead: str) -> str:
@@ -655,12 +666,9 @@ def with_run_folder_columns(root: Path) -> str:
             **field_docs(runs / "logger.py", ("EpisodeRecord",))}  # fmt: skip
     names = column_names(runs / "logger.py")
     rows = [[f"`{name}`", docs[name].replace("|", "\\|")] for name in names]
-    block = "\n".join([COLUMNS_START, *table(["column", "what it holds"], rows), COLUMNS_END])
     text = (root / "docs" / "run-folders.md").read_text(encoding="utf-8")
-    start, end = text.find(COLUMNS_START), text.find(COLUMNS_END)
-    if start < 0 or end < start:
-        raise ValueError(f"docs/run-folders.md lacks the markers {COLUMNS_START!r} ...")
-    return text[:start] + block + text[end + len(COLUMNS_END) :]
+    block = table(["column", "what it holds"], rows)
+    return rewrite_blocks(text, COLUMNS_START, COLUMNS_END, [block], "docs/run-folders.md")
 
 
 # --- The batch population's measurements (docs/batch.md) --------------------------------
@@ -716,14 +724,8 @@ def with_population_tables(root: Path) -> str:
     (the first pair of markers: the options; the second: whole runs)."""
     data = read_json(root, "benchmarks/results/batch_population.json")
     text = (root / "docs" / "batch.md").read_text(encoding="utf-8")
-    for block in (population_option_table(data), population_run_table(data)):
-        start = text.find(POPULATION_START + "\n|")  # the first block not yet rewritten
-        end = text.find(POPULATION_END, start)
-        if start < 0 or end < start:
-            raise ValueError("docs/batch.md lacks the population markers")
-        new = "\n".join([POPULATION_START + "\x00", *block, POPULATION_END])
-        text = text[:start] + new + text[end + len(POPULATION_END) :]
-    return text.replace(POPULATION_START + "\x00", POPULATION_START)
+    blocks = [population_option_table(data), population_run_table(data)]
+    return rewrite_blocks(text, POPULATION_START, POPULATION_END, blocks, "docs/batch.md")
 
 
 PAGES: dict[str, Callable[[Path], str]] = {
