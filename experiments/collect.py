@@ -8,7 +8,8 @@ stop or a change of machine loses at most the runs in flight:
     python experiments/collect.py /work/runs/paper-full results/paper-full
 
 A run is finished when it has ``done.json``. Its ``config.json``, ``episodes.csv``,
-``evaluation.json`` and ``done.json`` are copied (never checkpoints, TensorBoard logs or
+``evaluation.json`` and ``done.json`` are copied, and ``updates.csv`` where it has one (a
+batch run), (never checkpoints, TensorBoard logs or
 locks), with the grid's ``grid.json``, so that ``pporpe report results/NAME`` reports
 what is finished. A run already there with the same files is left alone; one that differs is
 an error (a grid is not retrained into a committed folder by accident).
@@ -24,6 +25,8 @@ from pathlib import Path
 
 RUN_FILES = ("config.json", "episodes.csv", "evaluation.json", "done.json")
 """A finished run's small files: what is committed of it."""
+OPTIONAL_FILES = ("updates.csv",)
+"""Small files a finished run has only for some learners (a batch run's per-update log)."""
 
 
 def finished_runs(work: Path) -> list[Path]:
@@ -36,16 +39,17 @@ def collect(work: Path, results: Path) -> tuple[int, int]:
     copied = kept = 0
     for run in finished_runs(work):
         target = results / run.relative_to(work)
-        present = [target / name for name in RUN_FILES if (target / name).exists()]
+        names = [*RUN_FILES, *(n for n in OPTIONAL_FILES if (run / n).exists())]
+        present = [target / name for name in names if (target / name).exists()]
         if present:
             changed = [p.name for p in present if not filecmp.cmp(p, run / p.name, shallow=False)]
             if changed:
                 raise SystemExit(f"{target}: {', '.join(changed)} differ from {run}; not copied")
-            if len(present) == len(RUN_FILES):
+            if len(present) == len(names):
                 kept += 1
                 continue
         target.mkdir(parents=True, exist_ok=True)
-        for name in RUN_FILES:
+        for name in names:
             shutil.copyfile(run / name, target / name)
         copied += 1
     if copied:

@@ -29,7 +29,7 @@ from pporpe.batch.kind import BatchPopulationTrainer
 from pporpe.batch.population import BatchPopulation, check_member
 from pporpe.experiments.grid import load_spec
 from pporpe.experiments.reproduce import reproduce
-from pporpe.runs.logger import EpisodeRecord, read_records
+from pporpe.runs.logger import EpisodeRecord, LoggedUpdate, read_records, read_updates
 from pporpe.runs.loop import run_queue
 
 
@@ -251,6 +251,13 @@ def records(results: list[Any]) -> list[list[EpisodeRecord]]:
     return [[replace(r, wall_time=0.0) for r in res.records] for res in results]
 
 
+def logged_updates(run: Path) -> list[LoggedUpdate]:
+    """A run's ``updates.csv`` without its wall times; its updates are 0..N-1 once each."""
+    got = [replace(u, wall_time=0.0) for u in read_updates(run / "updates.csv")]
+    assert [u.update for u in got] == list(range(len(got)))
+    return got
+
+
 PENDULUM = BatchConfig(
     env="pendulum", n_envs=2, n_steps=32, batch_size=16, n_epochs=2, layers=1, units=16,
     total_steps=64, eval_episodes=2, checkpoint_every=1,
@@ -279,6 +286,11 @@ def test_a_population_of_runs_gives_the_records_of_runs_alone(tmp_path: Path) ->
     assert [r.chunks for r in pop] == [3, 1, 2, 4] and all(r.error is None for r in pop)
     assert records(pop) == records(alone) == records(again)
     assert [r.evaluation for r in pop] == [r.evaluation for r in alone]
+    for c in QUEUE:  # a row per update, the same statistics as alone
+        pop_updates = logged_updates(tmp_path / "pop" / f"s{c.seed}")
+        assert len(pop_updates) == c.total_steps // 64
+        assert pop_updates == logged_updates(tmp_path / "alone" / f"s{c.seed}")
+        assert "approx_kl" in pop_updates[0].values
     for c in QUEUE:
         a = torch.load(tmp_path / "pop" / f"s{c.seed}" / "checkpoint.pt", weights_only=False)
         b = torch.load(tmp_path / "alone" / f"s{c.seed}" / "checkpoint.pt", weights_only=False)
@@ -309,6 +321,10 @@ def test_a_stopped_population_resumes_to_the_records_of_an_uninterrupted_one(
     resumed = run_queue(queue(tmp_path / "b"), capacity=3, home=tmp_path / "b")
     assert any(r.resumed_from > 0 for r in resumed)
     assert records(resumed) == records(full)
+    for c in QUEUE:
+        assert logged_updates(tmp_path / "b" / f"s{c.seed}") == logged_updates(
+            tmp_path / "full" / f"s{c.seed}"
+        )
 
 
 def test_members_must_share_the_shape_of_the_computation() -> None:
@@ -387,6 +403,7 @@ def test_sigkill_a_batch_population_then_resume_gives_the_same_records(tmp_path:
         want = read_records(ref / run.key / "episodes.csv")
         assert [r.episode for r in got] == list(range(len(want)))
         assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]
+        assert logged_updates(out / run.key) == logged_updates(ref / run.key)
     alone = train_batch(spec.runs[0].config, tmp_path / "alone", progress=False)
     assert records([alone])[0] == [
         replace(r, wall_time=0.0) for r in read_records(ref / spec.runs[0].key / "episodes.csv")

@@ -19,7 +19,13 @@ from pporpe.experiments.results import diagnostic, record_value, update_mean
 from pporpe.online.config import TrainConfig
 from pporpe.runs import EpisodeRecord, SurrogateDiagnostics, read_records, train
 from pporpe.runs.folder import CHECKPOINT, load_checkpoint, save_checkpoint
-from pporpe.runs.logger import RunLogger, records_to_csv
+from pporpe.runs.logger import (
+    LoggedUpdate,
+    RunLogger,
+    read_updates,
+    records_to_csv,
+    updates_to_csv,
+)
 
 FIXTURES = Path(__file__).parent / "fixtures"
 HEADER = "episode,total_steps,ret,length,reg_amount,past_threshold,trace_decay,ratio_dev,wall_time"
@@ -183,3 +189,61 @@ def test_committed_episodes_csv_writes_back_byte_for_byte(name: str) -> None:
     today's writer, it is the same text."""
     path = FIXTURES / f"run_v0_1_{name}" / "episodes.csv"
     assert records_to_csv(read_records(path)) == path.read_text()
+
+
+def test_a_batch_run_logs_every_update_and_an_online_run_none(tmp_path: Path) -> None:
+    """updates.csv: one row per update (its index, steps, the learner's statistics, wall
+    time), as the run's result reported them; none for the online learner."""
+    result = train(batch(), tmp_path / "b", progress=False)
+    updates = read_updates(tmp_path / "b" / "updates.csv")
+    assert [u.update for u in updates] == list(range(result.chunks)) == list(range(4))
+    assert [u.total_steps for u in updates] == [64, 128, 192, 256]
+    assert updates[-1].values == pytest.approx(result.last_scalars, rel=1e-6)
+    wall = [u.wall_time for u in updates]
+    assert wall == sorted(wall) and wall[-1] <= result.train_time
+    for name in ("approx_kl", "past_threshold", "ratio_dev", "policy_loss"):
+        assert all(math.isfinite(u.values[name]) for u in updates)
+    train(online(), tmp_path / "o", progress=False)
+    assert not (tmp_path / "o" / "updates.csv").exists()
+
+
+def test_updates_csv_round_trips_and_refuses_mixed_statistics(tmp_path: Path) -> None:
+    logged = [
+        LoggedUpdate(0, 64, {"approx_kl": 0.01, "lr": 3e-4}, 0.5),
+        LoggedUpdate(1, 128, {"approx_kl": float("nan"), "lr": 1.5e-4}, 1.25),
+    ]
+    RunLogger(tmp_path, tensorboard=False).write_updates(logged)
+    back = read_updates(tmp_path / "updates.csv")
+    assert (tmp_path / "updates.csv").read_text().splitlines()[0] == (
+        "update,total_steps,approx_kl,lr,wall_time"
+    )
+    assert back[0] == logged[0] and math.isnan(back[1].values["approx_kl"])
+    assert back[1].values["lr"] == 1.5e-4 and back[1].wall_time == 1.25
+    with pytest.raises(ValueError, match="update 1 reports"):
+        updates_to_csv([logged[0], LoggedUpdate(1, 128, {"lr": 1.0}, 1.0)])
+    (tmp_path / "bad.csv").write_text("update,total_steps,lr,wall_time\n0,64,x,1.0\n")
+    with pytest.raises(ValueError, match=r"bad\.csv cannot be read as an updates\.csv"):
+        read_updates(tmp_path / "bad.csv")
+
+
+def test_a_batch_run_resumed_from_a_checkpoint_without_updates_numbers_them_on(
+    tmp_path: Path,
+) -> None:
+    """A checkpoint written before updates were logged: the resumed run logs the updates
+    it makes with their true indices, from the checkpoint's update on."""
+    run = tmp_path / "b"
+    cfg = batch()
+    chunks: list[Any] = []
+
+    def third_update(trainer: Any, report: Any, t: float) -> None:
+        chunks.append(report)
+        if len(chunks) == 3:  # after the checkpoint of update 2
+            raise Interrupted
+
+    with pytest.raises(Interrupted):
+        train(cfg, run, progress=False, on_chunk=third_update)
+    state = load_checkpoint(run)
+    del state["updates"]
+    save_checkpoint(run / CHECKPOINT, state)
+    train(cfg, run, progress=False)
+    assert [u.update for u in read_updates(run / "updates.csv")] == [2, 3]

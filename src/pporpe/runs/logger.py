@@ -1,8 +1,11 @@
-"""The one sink that writes a run's logs: the per-episode CSV and TensorBoard scalars.
+"""The one sink that writes a run's logs: the per-episode CSV, the per-update CSV and
+TensorBoard scalars.
 
-The CSV is the authoritative record. It is rewritten atomically from the list of
-records that the checkpoint also holds, so after a crash and resume it has no gap and
-no duplicate episode. TensorBoard scalars are written live, one point per episode.
+The CSVs are the authoritative record. ``episodes.csv`` is rewritten atomically from the
+list of records that the checkpoint also holds, so after a crash and resume it has no gap
+and no duplicate episode. A learner that reports statistics per update (batch PPO: the
+approximate KL, the share of samples past the threshold, the losses, ...) gets
+``updates.csv`` the same way, a row per update. TensorBoard scalars are written live.
 """
 
 from __future__ import annotations
@@ -17,7 +20,14 @@ from typing import Any
 from ..io import atomic_write_text
 from .kinds import SurrogateDiagnostics
 
-__all__ = ["COLUMNS", "EpisodeRecord", "RunLogger", "read_records"]
+__all__ = [
+    "COLUMNS",
+    "EpisodeRecord",
+    "LoggedUpdate",
+    "RunLogger",
+    "read_records",
+    "read_updates",
+]
 
 COLUMNS: tuple[str, ...] = (
     "episode",
@@ -139,12 +149,79 @@ def read_records(path: str | Path) -> list[EpisodeRecord]:
     return out
 
 
+UPDATE_COLUMNS: tuple[str, str] = ("update", "total_steps")
+"""The first columns of ``updates.csv``; the learner's statistics follow, in the order it
+reports them, and ``wall_time`` last."""
+
+
+@dataclass(frozen=True)
+class LoggedUpdate:
+    """One update of a learner that reports statistics per update: one row of
+    ``updates.csv``."""
+
+    update: int
+    """Update index, from 0."""
+    total_steps: int
+    """Environment steps taken by the run when the update was made."""
+    values: dict[str, float]
+    """The learner's statistics of the update by name (a batch update's
+    :class:`~pporpe.batch.UpdateStats`), in the order it reports them."""
+    wall_time: float
+    """Seconds since the start of training (over all resumed segments)."""
+
+    def row(self) -> dict[str, Any]:
+        """The update as one flat row: ``update``, ``total_steps``, the values, ``wall_time``
+        (the form a checkpoint stores)."""
+        return {"update": self.update, "total_steps": self.total_steps, **self.values,
+                "wall_time": self.wall_time}  # fmt: skip
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> LoggedUpdate:
+        """The update of a flat row (:meth:`row`, or a row of ``updates.csv``)."""
+        values = {k: float(v) for k, v in row.items() if k not in (*UPDATE_COLUMNS, "wall_time")}
+        return cls(int(row["update"]), int(row["total_steps"]), values, float(row["wall_time"]))
+
+
+def updates_to_csv(updates: list[LoggedUpdate]) -> str:
+    """The CSV text of a list of logged updates (header row first); ``ValueError`` if they do
+    not all report the same statistics."""
+    names = list(updates[0].row()) if updates else [*UPDATE_COLUMNS, "wall_time"]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
+    writer.writeheader()
+    for u in updates:
+        row = u.row()
+        if list(row) != names:
+            raise ValueError(f"update {u.update} reports {list(row)}, the first {names}")
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+def read_updates(path: str | Path) -> list[LoggedUpdate]:
+    """Read an ``updates.csv`` written by :class:`RunLogger` (``ValueError`` naming the file
+    if a required column is missing or a cell is not a number). An empty cell reads as NaN
+    (a statistic an update could not compute)."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        return [
+            LoggedUpdate.from_row({k: "nan" if v == "" else v for k, v in row.items()})
+            for row in rows
+        ]
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{path} cannot be read as an updates.csv ({type(exc).__name__}: {exc}); "
+            "a resumed run rewrites it from its checkpoint"
+        ) from None
+
+
 class RunLogger:
-    """Writes ``episodes.csv`` and TensorBoard scalars under a run folder."""
+    """Writes ``episodes.csv``, ``updates.csv`` and TensorBoard scalars under a run folder."""
 
     def __init__(self, run_dir: str | Path, tensorboard: bool = True) -> None:
         self.run_dir = Path(run_dir)
         self.csv_path = self.run_dir / "episodes.csv"
+        self.updates_path = self.run_dir / "updates.csv"
         self._tb: Any = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -170,6 +247,12 @@ class RunLogger:
     def write_records(self, records: list[EpisodeRecord]) -> None:
         """Rewrite the per-episode CSV atomically from the full list of records."""
         atomic_write_text(self.csv_path, records_to_csv(records))
+
+    def write_updates(self, updates: list[LoggedUpdate]) -> None:
+        """Rewrite the per-update CSV atomically from the full list of logged updates (no
+        file for a learner that reports none)."""
+        if updates:
+            atomic_write_text(self.updates_path, updates_to_csv(updates))
 
     def close(self) -> None:
         """Flush and close TensorBoard."""

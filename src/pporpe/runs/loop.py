@@ -56,7 +56,7 @@ from .folder import (
 )
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
-from .logger import EpisodeRecord, RunLogger, read_records
+from .logger import EpisodeRecord, LoggedUpdate, RunLogger, read_records
 from .population_checkpoint import Packing, PopulationCheckpoint
 from .stopping import Interrupted
 
@@ -118,6 +118,10 @@ class _Run:
     def __init__(self, kind: LearnerKind, cfg: Any, run: Path, bar: bool) -> None:
         self.kind, self.cfg, self.run = kind, cfg, run
         self.records: list[EpisodeRecord] = []
+        self.updates: list[LoggedUpdate] = []
+        self.first_update = 0
+        """Index of :attr:`updates`' first entry (not 0 after a resume from a checkpoint
+        written before updates were logged)."""
         self.wall_offset = 0.0
         self.excluded = 0.0
         self.last: dict[str, float] = {}
@@ -131,8 +135,13 @@ class _Run:
     def resume(self, state: dict[str, Any] | None, trainer: Trainer, slot: int) -> None:
         if state is not None:
             self.records = [EpisodeRecord.from_row(r) for r in state["records"]]
+            self.updates = [LoggedUpdate.from_row(r) for r in state.get("updates", [])]
             self.wall_offset = float(state["wall_time"])
         self.resumed_from = trainer.counters(slot)["chunks"]
+        if self.updates or state is None:
+            self.first_update = self.updates[0].update if self.updates else 0
+        else:
+            self.first_update = self.resumed_from
         self.t_start = time.perf_counter()
         if self.want_bar:
             from tqdm import tqdm
@@ -167,6 +176,8 @@ class _Run:
         if report.scalars:
             self.last = dict(report.scalars)
             self.logger.scalars("update", self.last, report.total_steps)
+            index = self.first_update + len(self.updates)
+            self.updates.append(LoggedUpdate(index, report.total_steps, self.last, now))
         if self.bar is not None:
             self.bar.update(report.bar_advance)
             if self.records:  # the last episode by its number from 1, as the bar counts
@@ -183,13 +194,20 @@ class _Run:
             )
         state = trainer.state(slot)
         state["records"] = [r.row() for r in self.records]  # flat, as always
+        if self.updates:
+            state["updates"] = [u.row() for u in self.updates]
         state["wall_time"] = self.train_time()
         return state
 
     def checkpoint(self, trainer: Trainer, slot: int) -> None:
         """Write the run's own checkpoint and records."""
         save_checkpoint(self.run / CHECKPOINT, self.state(trainer, slot))
+        self.write_logs()
+
+    def write_logs(self) -> None:
+        """Rewrite ``episodes.csv`` (and ``updates.csv``) from the records."""
         self.logger.write_records(self.records)
+        self.logger.write_updates(self.updates)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -290,7 +308,7 @@ class _Queue:
                 self.fail(slot, str(exc))
         self.population.save(self.packing, states)
         for book in self.books.values():
-            book.logger.write_records(book.records)
+            book.write_logs()
 
     def fail(self, slot: int, message: str) -> None:
         """Run of ``slot`` failed alone: its message and last good state in its folder."""
