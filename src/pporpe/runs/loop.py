@@ -491,6 +491,29 @@ def _check_checkpoints(dirs: list[Path], population: PopulationCheckpoint | None
             check_checkpoint(path)
 
 
+def _check_numbers(num_threads: int, checkpoint_seconds: float, checkpoint_within: float) -> None:
+    """``ValueError`` naming the argument of :func:`run_queue` that is out of range."""
+    if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
+        raise ValueError(f"num_threads must be an int >= 1; got num_threads={num_threads!r}")
+    for name, value in (("checkpoint_seconds", checkpoint_seconds),
+                        ("checkpoint_within", checkpoint_within)):  # fmt: skip
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+            raise ValueError(f"{name} must be a number >= 0; got {name}={value!r}")
+
+
+def _one_kind(cfgs: list[Any]) -> LearnerKind:
+    """The learner kind of runs that share it, their task and network shape (else
+    ``ValueError``), after building each task's environment once: bad names and spaces
+    (e.g. discrete actions) fail before any folder is written."""
+    kind = kind_of(cfgs[0])
+    keys = {kind.pack_key(c) for c in cfgs}
+    if any(kind_of(c) is not kind for c in cfgs) or len(keys) != 1:
+        raise ValueError("run_queue takes runs of one learner kind, task and network shape")
+    for env in dict.fromkeys(cfg.env for cfg in cfgs):
+        make_env(env).close()
+    return kind
+
+
 def run_queue(
     runs: Sequence[tuple[Any, str | Path]],
     capacity: int = 1,
@@ -526,24 +549,13 @@ def run_queue(
     :class:`~pporpe.runs.stopping.Interrupted` is raised (``pporpe train`` and grids pass
     :func:`~pporpe.runs.stopping.stop_on_sigint`'s request: Ctrl-C).
     """
-    if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
-        raise ValueError(f"num_threads must be an int >= 1; got num_threads={num_threads!r}")
-    for name, value in (("checkpoint_seconds", checkpoint_seconds),
-                        ("checkpoint_within", checkpoint_within)):  # fmt: skip
-        if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
-            raise ValueError(f"{name} must be a number >= 0; got {name}={value!r}")
+    _check_numbers(num_threads, checkpoint_seconds, checkpoint_within)
     if not runs:
         return []
     if capacity > 1 and home is None:
         raise ValueError("run_queue needs a home folder for population.json when capacity > 1")
     cfgs = [cfg for cfg, _ in runs]
-    kind = kind_of(cfgs[0])
-    keys = {kind.pack_key(c) for c in cfgs}
-    if any(kind_of(c) is not kind for c in cfgs) or len(keys) != 1:
-        raise ValueError("run_queue takes runs of one learner kind, task and network shape")
-    for env in dict.fromkeys(cfg.env for cfg in cfgs):
-        # bad names and spaces (e.g. discrete actions) fail before any folder is written
-        make_env(env).close()
+    kind = _one_kind(cfgs)
     dirs = [Path(d) for _, d in runs]
     results: dict[int, RunResult] = {}
     pending = _pending_runs(kind, cfgs, dirs, results)
