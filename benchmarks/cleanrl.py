@@ -9,7 +9,7 @@ it runs with torch 2.13 CPU, numpy < 2, tyro, tensorboard and imageio < 3::
     python3 -m venv .venv && .venv/bin/pip install torch==2.13.0 "numpy<2" \\
         gymnasium==0.29.1 mujoco==2.3.3 tyro tensorboard "imageio<3"
 
-Four subcommands, each resumable (a seed whose result file exists is skipped):
+Five subcommands, each resumable (a seed whose result file exists is skipped):
 
 ``cleanrl``
     CleanRL's script for the seeds, one after another (``--no-cuda``, its defaults
@@ -23,15 +23,24 @@ Four subcommands, each resumable (a seed whose result file exists is skipped):
     the PPO runs of the batch study (``experiments/batch-mujoco.toml``, CleanRL's settings;
     ``pporpe reproduce ... --out results/batch-mujoco``) as result files in the same form.
 
+``sb3``
+    Stable-Baselines3's PPO with CleanRL's settings (the same networks, initialisation,
+    normalisation, schedule and losses, as SB3's options allow: ``VecNormalize`` clipping
+    at 10, ``clip_range_vf`` 0.2, a linear learning rate, Adam's eps 1e-5), in pporpe's
+    environment, the returns of its ``Monitor``::
+
+        python benchmarks/cleanrl.py sb3 --task Hopper-v4 --seeds 1 2 3
+
 ``throughput``
     steps/s of both side by side in one run, alternating A B A B: CleanRL's script and
     ``pporpe train --learner batch`` with the study's settings, each for ``--steps``.
 
 ``summarize``
     ``summary.json`` (the versions, the commands and a list ``runs`` of ``{"implementation":
-    "pporpe" | "cleanrl", "task", "seed", "last100_mean", "steps_per_s"}``), ``summary.md``
-    (per task: the last-100 mean with bootstrap CIs, P(pporpe > CleanRL) with its CI) and
-    ``curves_<task>.png`` (the two mean learning curves over steps, 95% bands).
+    "pporpe" | "cleanrl" | "sb3", "task", "seed", "last100_mean", "steps_per_s"}``),
+    ``summary.md`` (per task: the last-100 mean with bootstrap CIs, P(pporpe > CleanRL) with
+    its CI, and P(pporpe > SB3) where SB3 ran) and ``curves_<task>.png`` (the mean learning
+    curves over steps, 95% bands).
 
 The metric is CleanRL's: the mean return of the last 100 training episodes. Result files:
 ``benchmarks/results/cleanrl/<implementation>/<task>/seed<N>.json``.
@@ -57,7 +66,7 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "cleanrl"
 SCRIPT = Path("cleanrl") / "ppo_continuous_action.py"
 TASKS = ("HalfCheetah-v4", "Hopper-v4", "Walker2d-v4", "Ant-v4")
-IMPLEMENTATIONS = ("pporpe", "cleanrl")
+IMPLEMENTATIONS = ("pporpe", "cleanrl", "sb3")
 EPISODE_LINE = re.compile(r"global_step=(\d+), episodic_return=\[?([-+0-9.eE]+)\]?")
 SPS_LINE = re.compile(r"^SPS: (\d+)", re.M)
 LAST = 100
@@ -140,6 +149,60 @@ def git_commit(checkout: Path) -> str | None:
     done = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"],
                           capture_output=True, text=True)  # fmt: skip
     return done.stdout.strip() or None
+
+
+def sb3_model(task: str, seed: int) -> Any:
+    """Stable-Baselines3's PPO set as CleanRL's ``ppo_continuous_action.py``: one
+    environment, 2048 steps per rollout, minibatches of 64, 10 epochs, lr 3e-4 annealed
+    linearly to 0, gamma 0.99, GAE lambda 0.95, clip 0.2 for the ratio and the value, no
+    entropy bonus, value coefficient 0.5, gradient norm 0.5, advantages normalised per
+    minibatch, observations and rewards normalised and clipped at 10, separate 2 x 64 tanh
+    networks, orthogonal initialisation (SB3's gains: sqrt 2, 0.01 for the mean, 1 for the
+    value), a state-independent log std from 0, Adam's eps 1e-5 (SB3's default)."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    monitored = DummyVecEnv([lambda: Monitor(gym.make(task))])
+    venv = VecNormalize(monitored, gamma=0.99, clip_obs=10.0, clip_reward=10.0)
+    policy_kwargs = {"net_arch": {"pi": [64, 64], "vf": [64, 64]},
+                     "activation_fn": torch.nn.Tanh, "ortho_init": True, "log_std_init": 0.0}
+    return PPO("MlpPolicy", venv, learning_rate=lambda left: 3e-4 * left, n_steps=2048,
+               batch_size=64, n_epochs=10, gamma=0.99, gae_lambda=0.95, clip_range=0.2,
+               clip_range_vf=0.2, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5,
+               normalize_advantage=True, policy_kwargs=policy_kwargs, seed=seed,
+               device="cpu")  # fmt: skip
+
+
+def run_sb3(args: argparse.Namespace) -> int:
+    """Stable-Baselines3's PPO (:func:`sb3_model`) for each seed, one result file per seed:
+    the returns and lengths its ``Monitor`` recorded, steps/s of ``learn``."""
+    import stable_baselines3
+    import torch
+    from _common import write_json
+
+    torch.set_num_threads(1)
+    for seed in args.seeds:
+        out = result_path(args.root, "sb3", args.task, seed)
+        if out.exists():
+            print(f"seed {seed}: done already ({out})", flush=True)
+            continue
+        model = sb3_model(args.task, seed)
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=args.steps)
+        wall = time.perf_counter() - t0
+        monitor = model.get_env().venv.envs[0]
+        returns = [float(r) for r in monitor.get_episode_rewards()]
+        steps = np.cumsum(monitor.get_episode_lengths()).tolist()
+        write_json(out, {"implementation": "sb3", "task": args.task, "seed": seed,
+                         "total_steps": int(model.num_timesteps), "wall_s": wall,
+                         "sb3_version": stable_baselines3.__version__,
+                         "episode_steps": [int(x) for x in steps], "returns": returns,
+                         "steps_per_s": model.num_timesteps / wall})  # fmt: skip
+        print(f"seed {seed}: last-{LAST} mean {last_mean(returns):.1f}", flush=True)
+    return 0
 
 
 def export_pporpe(args: argparse.Namespace) -> int:
@@ -243,16 +306,18 @@ def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
 
     groups = {i: [r for r in runs if r["task"] == task and r["implementation"] == i]
               for i in IMPLEMENTATIONS}  # fmt: skip
-    if not all(groups.values()):
+    groups = {i: g for i, g in groups.items() if g}
+    if "pporpe" not in groups or "cleanrl" not in groups:
         return None
     row: dict[str, Any] = {"task": task, "seeds": {i: len(g) for i, g in groups.items()}}
     for impl, group in groups.items():
         row[impl] = bootstrap_ci([r["last100_mean"] for r in group]).as_dict()
         row[f"{impl}_steps_per_s"] = float(np.median([r["steps_per_s"] for r in group]))
-    row["p_pporpe_better"] = probability_of_improvement_ci(
-        [r["last100_mean"] for r in groups["pporpe"]],
-        [r["last100_mean"] for r in groups["cleanrl"]],
-    ).as_dict()
+    mine = [r["last100_mean"] for r in groups["pporpe"]]
+    for rival, key in (("cleanrl", "p_pporpe_better"), ("sb3", "p_pporpe_better_sb3")):
+        if rival in groups:
+            theirs = [r["last100_mean"] for r in groups[rival]]
+            row[key] = probability_of_improvement_ci(mine, theirs).as_dict()
     return row
 
 
@@ -293,20 +358,35 @@ def summarize(args: argparse.Namespace) -> int:
     slim = [{k: r[k] for k in ("implementation", "task", "seed", "last100_mean", "steps_per_s")}
             for r in runs]  # fmt: skip
     write_json(args.root / "summary.json", {"runs": slim, "tasks": rows})
-    lines = ["| task | seeds (pporpe / CleanRL) | pporpe last-100 mean | CleanRL last-100 mean | "
-             "P(pporpe > CleanRL) | steps/s (pporpe / CleanRL) |",
-             "| --- | --- | ---: | ---: | :---: | ---: |"]  # fmt: skip
-    for row in rows:
-        p = row["p_pporpe_better"]
-        lines.append(
-            f"| {row['task']} | {row['seeds']['pporpe']} / {row['seeds']['cleanrl']} | "
-            f"{fmt(row['pporpe'])} | {fmt(row['cleanrl'])} | "
-            f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}] | "
-            f"{row['pporpe_steps_per_s']:.0f} / {row['cleanrl_steps_per_s']:.0f} |"
-        )
+    lines = summary_lines(rows)
     (args.root / "summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
+
+
+def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """The side-by-side table: per task the last-100 means, P(pporpe > CleanRL), and SB3's
+    mean and P(pporpe > SB3) where it ran ("-" where not)."""
+    lines = ["| task | seeds (pporpe / CleanRL / SB3) | pporpe last-100 mean | "
+             "CleanRL last-100 mean | P(pporpe > CleanRL) | SB3 last-100 mean | "
+             "P(pporpe > SB3) | steps/s (pporpe / CleanRL / SB3) |",
+             "| --- | --- | ---: | ---: | :---: | ---: | :---: | ---: |"]  # fmt: skip
+    for row in rows:
+        seeds = " / ".join(str(row["seeds"].get(i, 0)) for i in IMPLEMENTATIONS)
+        rates = " / ".join(f"{row[f'{i}_steps_per_s']:.0f}" if i in row else "-"
+                           for i in IMPLEMENTATIONS)  # fmt: skip
+        sb3 = fmt(row["sb3"]) if "sb3" in row else "-"
+        lines.append(
+            f"| {row['task']} | {seeds} | {fmt(row['pporpe'])} | {fmt(row['cleanrl'])} | "
+            f"{fmt_p(row['p_pporpe_better'])} | {sb3} | "
+            f"{fmt_p(row['p_pporpe_better_sb3']) if 'p_pporpe_better_sb3' in row else '-'} | "
+            f"{rates} |"
+        )
+    return lines
+
+
+def fmt_p(p: dict[str, float]) -> str:
+    return f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
 
 
 def fmt(ci: dict[str, float]) -> str:
@@ -319,20 +399,22 @@ def build_parser() -> argparse.ArgumentParser:
     ref = sub.add_parser("cleanrl", help="CleanRL's script for the seeds")
     put = sub.add_parser("throughput", help="steps/s of both, side by side")
     own = sub.add_parser("pporpe", help="the batch study's PPO runs as result files")
+    sb3 = sub.add_parser("sb3", help="Stable-Baselines3's PPO with CleanRL's settings")
     summ = sub.add_parser("summarize", help="summary.json, summary.md and the curves")
     for p in (ref, put):
         p.add_argument("--checkout", type=Path, required=True, help="a clone of CleanRL")
         p.add_argument("--python", type=Path, required=True, help="CleanRL's interpreter")
         p.add_argument("--work", type=Path, default=Path("/tmp/pporpe-cleanrl"),
                        help="where CleanRL's runs/ folders go")  # fmt: skip
-    for p in (ref, put, own):
+    for p in (ref, put, own, sb3):
         p.add_argument("--task", choices=TASKS, required=True)
-    ref.add_argument("--seeds", type=int, nargs="+", required=True)
-    ref.add_argument("--steps", type=positive, default=1_000_000, help="steps per run")
+    for p in (ref, sb3):
+        p.add_argument("--seeds", type=int, nargs="+", required=True)
+        p.add_argument("--steps", type=positive, default=1_000_000, help="steps per run")
     put.add_argument("--steps", type=positive, default=20_480, help="steps per measurement")
     put.add_argument("--rounds", type=positive, default=3)
     own.add_argument("--study", type=Path, default=HERE.parent / "results" / "batch-mujoco")
-    for p in (ref, put, own, summ):
+    for p in (ref, put, own, summ, sb3):
         p.add_argument("--root", type=Path, default=RESULTS, help="folder of the result files")
     return parser
 
@@ -347,7 +429,7 @@ def positive(text: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     commands = {"cleanrl": run_cleanrl, "pporpe": export_pporpe, "throughput": throughput,
-                "summarize": summarize}  # fmt: skip
+                "summarize": summarize, "sb3": run_sb3}  # fmt: skip
     return commands[args.command](args)
 
 

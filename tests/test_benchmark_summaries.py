@@ -557,3 +557,11 @@ def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
     # pairs won: 3>2, 4>2, 6>2, 6>5: 4 of 6
     assert row["p_pporpe_better"]["value"] == pytest.approx(4 / 6)
     assert row["pporpe"]["value"] == pytest.approx(13 / 3)
+    line = cleanrl.summary_lines([row])[2]
+    assert "p_pporpe_better_sb3" not in row and "| - | - | 1000 / 1000 / - |" in line
+    runs += [run("sb3", s, v) for s, v in enumerate([4.0, 4.0, 7.0])]
+    row = cleanrl.task_row(runs, "Hopper-v4")
+    assert row is not None and row["seeds"] == {"pporpe": 3, "cleanrl": 2, "sb3": 3}
+    # pporpe 3, 4, 6 against SB3 4, 4, 7: wins 6>4 twice, ties 4=4 twice (half each): 3 of 9
+    assert row["p_pporpe_better_sb3"]["value"] == pytest.approx(3 / 9)
+    assert "| 3 / 2 / 3 |" in cleanrl.summary_lines([row])[2]
