@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from ..io import atomic_write_text
 from .kinds import SurrogateDiagnostics
+
+T = TypeVar("T")
 
 __all__ = [
     "COLUMNS",
@@ -134,19 +136,24 @@ def read_records(path: str | Path) -> list[EpisodeRecord]:
     no eligibility traces). Batch run folders written while batch runs filled that cell
     with 1.0 read 1.0, as written (see :mod:`pporpe.runs.migrate`).
     """
+    return _read_rows(
+        path,
+        "episodes.csv",
+        lambda row: EpisodeRecord.from_row({name: _cell(name, row[name]) for name in COLUMNS}),
+    )
+
+
+def _read_rows(path: str | Path, what: str, parse: Callable[[dict[str, str]], T]) -> list[T]:
+    """Every row of the CSV file ``path`` read by ``parse``; ``ValueError`` naming the file
+    as not readable as ``what`` (missing, torn, a missing column, a cell that is no number)."""
     try:
         with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        out = [
-            EpisodeRecord.from_row({name: _cell(name, row[name]) for name in COLUMNS})
-            for row in rows
-        ]
+            return [parse(row) for row in csv.DictReader(fh)]
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise ValueError(
-            f"{path} cannot be read as an episodes.csv ({type(exc).__name__}: {exc}); "
+            f"{path} cannot be read as an {what} ({type(exc).__name__}: {exc}); "
             "a resumed run rewrites it from its checkpoint"
         ) from None
-    return out
 
 
 UPDATE_COLUMNS: tuple[str, str] = ("update", "total_steps")
@@ -201,18 +208,11 @@ def read_updates(path: str | Path) -> list[LoggedUpdate]:
     """Read an ``updates.csv`` written by :class:`RunLogger` (``ValueError`` naming the file
     if a required column is missing or a cell is not a number). An empty cell reads as NaN
     (a statistic an update could not compute)."""
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        return [
-            LoggedUpdate.from_row({k: "nan" if v == "" else v for k, v in row.items()})
-            for row in rows
-        ]
-    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
-        raise ValueError(
-            f"{path} cannot be read as an updates.csv ({type(exc).__name__}: {exc}); "
-            "a resumed run rewrites it from its checkpoint"
-        ) from None
+    return _read_rows(
+        path,
+        "updates.csv",
+        lambda row: LoggedUpdate.from_row({k: "nan" if v == "" else v for k, v in row.items()}),
+    )
 
 
 class RunLogger:
