@@ -190,3 +190,33 @@ def test_gymnasium_warnings_come_once_without_colour_codes(
     assert len(ours) == 1
     assert "\x1b[" not in str(ours[0].message) and "out of date" in str(ours[0].message)
     assert not [w for w in recwarn if "\x1b[" in str(w.message)]
+
+
+def test_mujoco_model_warnings_come_once_and_a_users_handler_stays(
+    recwarn: pytest.WarningsRecorder,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """MuJoCo prints a line per HalfCheetah-v4 built (its model's ``settotalmass`` is
+    deprecated): pporpe gives it once per process as a MuJoCoWarning and prints nothing; a
+    warning handler the user installed gets MuJoCo's warnings instead, and stays."""
+    mujoco = pytest.importorskip("mujoco")
+    from pporpe import envs
+    from pporpe.envs import MuJoCoWarning
+
+    monkeypatch.setattr(envs, "_MUJOCO_WARNINGS_SHOWN", set())
+    for _ in range(3):
+        make_env("HalfCheetah-v4").close()
+    ours = [w for w in recwarn if w.category is MuJoCoWarning]
+    assert len(ours) == 1 and "settotalmass" in str(ours[0].message)
+    assert "settotalmass" not in "".join(capfd.readouterr())
+    assert mujoco.get_mju_user_warning() is None
+    seen: list[str] = []
+    mujoco.set_mju_user_warning(seen.append)
+    try:
+        make_env("HalfCheetah-v4").close()
+        assert mujoco.get_mju_user_warning() is not None
+    finally:
+        mujoco.set_mju_user_warning(None)
+    assert any("settotalmass" in m for m in seen)
+    assert len([w for w in recwarn if w.category is MuJoCoWarning]) == 1

@@ -57,6 +57,7 @@ __all__ = [
     "BULLET_STEPS",
     "MUJOCO_INSTALL",
     "GymnasiumWarning",
+    "MuJoCoWarning",
     "QuietBulletStart",
     "ReplayableEnv",
     "bullet_step_choice",
@@ -243,8 +244,10 @@ def make_env(
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
         spec = _bullet_spec(env_id, step)
+    mujoco_task = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
     try:
-        env = _make_with_plain_warnings(spec, **kwargs)
+        with _mujoco_warnings_once() if mujoco_task else contextlib.nullcontext():
+            env = _make_with_plain_warnings(spec, **kwargs)
     except gymnasium.error.DependencyNotInstalled as exc:
         raise _missing_dependency(env_id, entry_point, exc) from None
     if hasattr(env.unwrapped, "physicsClientId"):
@@ -304,6 +307,40 @@ def _make_with_plain_warnings(spec: Any, **kwargs: Any) -> gymnasium.Env:
             _GYMNASIUM_WARNINGS_SHOWN.add(message)
             warnings.warn_explicit(message, GymnasiumWarning, "gymnasium", 0)
     return env
+
+
+class MuJoCoWarning(UserWarning):
+    """A warning MuJoCo gave while compiling a task's model (e.g. that the ``-v4`` models'
+    ``settotalmass`` attribute is deprecated), which it would otherwise print for every
+    environment built: given once per process."""
+
+
+_MUJOCO_WARNINGS_SHOWN: set[str] = set()
+
+
+@contextlib.contextmanager
+def _mujoco_warnings_once() -> Iterator[None]:
+    """While building a MuJoCo task, MuJoCo's warnings as :class:`MuJoCoWarning`, each
+    message once per process, instead of a printed line per environment. A warning handler
+    the user installed (``mujoco.set_mju_user_warning``) is left in charge."""
+    try:
+        import mujoco
+    except ImportError:  # make_env then says what to install
+        yield
+        return
+    if mujoco.get_mju_user_warning() is not None:
+        yield
+        return
+    caught: list[str] = []
+    mujoco.set_mju_user_warning(caught.append)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(None)
+        for message in caught:
+            if message not in _MUJOCO_WARNINGS_SHOWN:
+                _MUJOCO_WARNINGS_SHOWN.add(message)
+                warnings.warn_explicit(message, MuJoCoWarning, "mujoco", 0)
 
 
 class QuietBulletStart(gymnasium.Wrapper):
