@@ -11,8 +11,10 @@ comes from a committed result file, never from a hand-copied number:
 * ``docs/results/throughput.md``: ``benchmarks/results/throughput*.json``;
 * ``docs/results/vs-sb3.md``: ``benchmarks/results/vs_sb3.json``;
 * ``docs/results/engines.md``: ``benchmarks/results/engine_shadow.json``;
+* ``docs/results/batch-mujoco.md``: ``results/batch-mujoco/REPORT.md`` once that grid's
+  results are committed (until then a page that says it has not run yet);
 * the block of ``README.md`` between the ``results`` markers: ``results/paper/REPORT.md``
-  and ``summary.csv``.
+  and ``summary.csv`` (and the batch grid's, once committed).
 
     python docs/generate.py           # rewrite the pages that changed
     python docs/generate.py --check   # exit 1 naming the pages that are not up to date
@@ -161,10 +163,51 @@ def readme_rows(root: Path, grid: str) -> list[Row]:
     return rows
 
 
+BATCH_GRID = "results/batch-mujoco"
+"""The batch study's grid (``experiments/batch-mujoco.toml``): its page and README rows
+appear once its REPORT.md is committed."""
+BATCH_SETTINGS = "batch PPO, CleanRL's settings"
+"""The settings column of the batch grid's README rows."""
+
+
+def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
+    """Per task of a batch grid (``pporpe report``'s batch REPORT.md and summary.csv), and
+    pooled over its tasks: the mean test scores (pooled: the IQM of the normalised scores),
+    P(PPO-RPE > rival) of the test score and its verdict ("-" for the online grids' claims
+    of early learning and regularisation)."""
+    report = (root / grid / "REPORT.md").read_text(encoding="utf-8")
+    with open(root / grid / "summary.csv", encoding="utf-8") as f:
+        means = {(r["task"], r["method"]): float(r["score_mean_value"]) for r in csv.DictReader(f)}
+    tables = md_tables(report)
+    per_task = next(t for t in tables if t[0][:3] == ["claim", "task", "rival"])
+    pooled = next(t for t in tables if t[0][:2] == ["claim", "rival"])
+    iqms = next(t for t in tables if t[0][:2] == ["claim", "method"])
+    rows = []
+    for task in dict.fromkeys(t for t, _ in means):
+        got = {r[2]: (r[3], r[5]) for r in per_task[1:] if r[:2] == ["test score", task]}
+        if not {"PPO", "PPO-RB"} <= set(got):
+            continue
+        scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
+        verdict = short_verdict([got[r][1] for r in ("PPO", "PPO-RB")])
+        rows.append([task, BATCH_SETTINGS, scores, got["PPO"][0], got["PPO-RB"][0], verdict,
+                     "-", "-"])  # fmt: skip
+    p = {r[1]: (r[3], r[4]) for r in pooled[1:] if r[0] == "test score"}
+    iqm = {r[1]: r[4].split(" [")[0] for r in iqms[1:] if r[0] == "test score"}
+    if {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
+        scores = " / ".join(iqm[m] for m in METHODS.values()) + " (IQM, normalised)"
+        verdict = short_verdict([p[r][1] for r in ("PPO", "PPO-RB")])
+        rows.append(["all tasks, pooled", BATCH_SETTINGS, scores, p["PPO"][0], p["PPO-RB"][0],
+                     verdict, "-", "-"])  # fmt: skip
+    return rows
+
+
 def readme_results(root: Path) -> list[str]:
-    """The README's headline table: every committed grid of :data:`GRIDS`, task by task."""
+    """The README's headline table: every committed grid of :data:`GRIDS`, task by task,
+    then the batch grid (:func:`batch_readme_rows`) once committed."""
     rows = [row for grid in GRIDS if (root / grid / "REPORT.md").exists()
             for row in readme_rows(root, grid)]  # fmt: skip
+    if (root / BATCH_GRID / "REPORT.md").exists():
+        rows += batch_readme_rows(root)
     head = ["task", "settings", "mean score: PPO / PPO-RB / PPO-RPE", "P(PPO-RPE > PPO)",
             "P(PPO-RPE > PPO-RB)", "final score", "early learning",
             "stronger regularisation"]  # fmt: skip
@@ -239,6 +282,27 @@ def reproduction_50seeds_page(root: Path) -> str:
         "says how many runs it covers: until every run is done, its verdicts are those of "
         "the seeds finished.",
     )  # fmt: skip
+
+
+def batch_mujoco_page(root: Path) -> str:
+    """The report of the batch study (``experiments/batch-mujoco.toml``), or a page that
+    says it has not run yet while ``results/batch-mujoco/REPORT.md`` is not committed."""
+    title = "Batch PPO on MuJoCo: PPO, PPO-RB and PPO-RPE with CleanRL's settings"
+    lead = (
+        "`experiments/batch-mujoco.toml`: batch PPO (rollouts, then minibatch epochs) with "
+        "CleanRL's `ppo_continuous_action.py` settings for every run, PPO, PPO-RB and "
+        "PPO-RPE on HalfCheetah-v4, Hopper-v4, Walker2d-v4 and Ant-v4, 10 seeds, 1M steps "
+        "per run. `pporpe reproduce experiments/batch-mujoco.toml --out DIR` trains it; "
+        "`python experiments/collect.py DIR results/batch-mujoco` commits the finished runs "
+        "and `pporpe report results/batch-mujoco` writes the report below from them: per "
+        "task and pooled over the tasks (rliable's IQM of normalised scores and average "
+        "probability of improvement), by environment steps."
+    )
+    if (root / BATCH_GRID / "REPORT.md").exists():
+        return report_page(root, BATCH_GRID, title, lead)
+    head = [f"# {title}", "", banner("experiments/batch-mujoco.toml"), "", lead, ""]
+    return "\n".join([*head, "Not run yet: no results of this grid are committed "
+                      f"(`{BATCH_GRID}/REPORT.md` does not exist).", ""])  # fmt: skip
 
 
 # --- The learner ablation ---------------------------------------------------------------
@@ -732,6 +796,7 @@ PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
     "docs/results/reproduction-50seeds.md": reproduction_50seeds_page,
+    "docs/results/batch-mujoco.md": batch_mujoco_page,
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
     "docs/results/vs-sb3.md": vs_sb3_page,

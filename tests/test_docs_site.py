@@ -84,11 +84,12 @@ def test_the_readme_table_is_the_reports_final_score_claims() -> None:
     """Each row of the README's table carries its grid's REPORT.md P(PPO-RPE > PPO) and
     P(PPO-RPE > PPO-RB) of the final score for that task, and summary.csv's means: the
     grid with Table I on the four tasks, then the one with the test bed's settings on the
-    two pendulum tasks."""
+    two pendulum tasks (the batch grid's rows, once committed: tests/test_batch_report.py)."""
     gen = _generate()
     readme = (ROOT / "README.md").read_text()
     block = readme[readme.index(gen.README_START) : readme.index(gen.README_END)]
     (rows,) = gen.md_tables(block)
+    rows = [r for r in rows if r[1] != gen.BATCH_SETTINGS]  # the batch grid's, once committed
     tasks = {name: key for key, name in gen.TASKS.items()}
     expected = [("InvertedPendulum", "Table I"), ("Swingup", "Table I"),
                 ("HalfCheetah", "Table I"), ("Ant", "Table I"),

@@ -21,7 +21,8 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``
 * ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);
 
 each figure as PNG and PDF (:mod:`.report_figures`). Unfinished or failed runs are left
-out and counted.
+out and counted. A grid of batch runs (``kind = "batch"``) gets its own report, by steps
+and over tasks (:mod:`.batch_report`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from ..io import atomic_savefig, atomic_write_text
+from .batch_report import write_batch_report
+from .batch_results import is_batch_grid
 from .report_figures import curve_figure, summary_figure
 from .results import (
     EARLY_EPISODES,
@@ -112,10 +115,13 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
 
 
 def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
-    """Write the summary table and figures into ``out`` (the grid's results folder)."""
+    """Write the summary table and figures into ``out`` (the grid's results folder); a grid
+    of batch runs gets the batch report (:func:`.batch_report.write_batch_report`)."""
     if not (isinstance(smooth, int) and smooth >= 1):
         raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
     root = Path(out)
+    if (root / "grid.json").exists() and is_batch_grid(root):
+        return write_batch_report(root, smooth)
     cells = load_results(root)
     stats = statistics(cells)  # once for the three files
     written = [

@@ -13,11 +13,23 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from scipy import stats
 
+from .batch_results import BatchCell, BatchRun, batch_tasks
 from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
 from .results import Cell, record_value, tasks_of
 from .stats import mean_ci
 
-__all__ = ["band", "curve_figure", "moving_average", "summary_figure"]
+__all__ = [
+    "STEP_POINTS",
+    "band",
+    "curve_figure",
+    "moving_average",
+    "step_curve",
+    "step_curve_figure",
+    "summary_figure",
+]
+
+STEP_POINTS = 100
+"""Points of the common grid of steps on which a batch grid's learning curves are drawn."""
 
 
 def band(curves: list[list[float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -82,6 +94,65 @@ def curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth:
                     transform=ax.transAxes)  # fmt: skip
     suffix = f"; moving average over {smooth} episodes" if smooth > 1 else ""
     fig.suptitle(f"{title} (mean over seeds, shaded: 95% CI{suffix})")
+    fig.tight_layout()
+    return fig
+
+
+def step_curve(run: BatchRun, steps: np.ndarray, smooth: int) -> np.ndarray:
+    """A run's training return at each of ``steps``: the trailing mean over ``smooth``
+    episodes of its returns, placed at the steps where each episode ended and interpolated
+    linearly between them; NaN before its first episode ended, its last value after its
+    last."""
+    if not run.returns:
+        return np.full(steps.shape, np.nan)
+    smoothed = moving_average(list(run.returns), smooth)
+    return np.interp(steps, np.asarray(run.steps, dtype=np.float64), smoothed, left=np.nan)
+
+
+def _draw_step_curves(ax: Axes, cells: list[BatchCell], smooth: int) -> None:
+    """One task's panel: per method, the mean over seeds of :func:`step_curve` on a grid
+    of :data:`STEP_POINTS` steps up to the task's longest run, and its 95% band (steps
+    where every seed has a value)."""
+    ends = [r.steps[-1] for c in cells for r in c.runs if r.steps]
+    if not ends:
+        return
+    grid = np.linspace(max(ends) / STEP_POINTS, max(ends), STEP_POINTS)
+    for c in cells:
+        runs = [r for r in c.runs if r.returns]
+        if not runs:
+            continue
+        curves = np.asarray([step_curve(r, grid, smooth) for r in runs])
+        keep = np.all(np.isfinite(curves), axis=0)
+        if not keep.any():
+            continue
+        mean, lo, hi = band(curves[:, keep].tolist())
+        color = METHOD_COLORS.get(c.method)
+        label = f"{METHOD_LABELS.get(c.method, c.method)} (n={len(runs)})"
+        x = grid[keep]
+        ax.plot(x, mean, color=color, ls=METHOD_STYLES.get(c.method, "-"), lw=1.6, label=label)
+        ax.fill_between(x, lo, hi, color=color, alpha=0.2, lw=0)
+
+
+def step_curve_figure(cells: list[BatchCell], smooth: int) -> Figure:
+    """Per task, each method's training return over environment steps (a batch grid's
+    learning curves): the mean over seeds of :func:`step_curve`, with a 95% Student-t band
+    over seeds."""
+    envs = batch_tasks(cells)
+    fig = Figure(figsize=(4.2 * max(len(envs), 1), 3.6))
+    axes = fig.subplots(1, max(len(envs), 1), squeeze=False)
+    for ax, env in zip(axes[0], envs, strict=False):
+        _draw_step_curves(ax, [c for c in cells if c.env == env], smooth)
+        ax.set_title(env)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("training episode return")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no finished runs yet", ha="center", va="center",
+                    transform=ax.transAxes)  # fmt: skip
+    suffix = f"; moving average over {smooth} episodes" if smooth > 1 else ""
+    fig.suptitle(f"Learning curves over steps (mean over seeds, shaded: 95% CI{suffix})")
     fig.tight_layout()
     return fig
 

@@ -32,6 +32,7 @@ __all__ = [
     "mean_difference_ci",
     "probability_of_improvement",
     "probability_of_improvement_ci",
+    "stratified_iqm_ci",
 ]
 
 N_RESAMPLES = 10_000
@@ -186,4 +187,33 @@ def average_probability_of_improvement_ci(
     if any(v.size < 2 for v in samples) or np.all(np.concatenate(samples) == samples[0][0]):
         return Estimate(point, point, point)
     lo, hi = _bootstrap(tuple(samples), average, level, seed)
+    return Estimate(point, lo, hi)
+
+
+def stratified_iqm_ci(
+    strata: Sequence[Sequence[float]], level: float = 0.95, seed: int = 0
+) -> Estimate:
+    """The :func:`iqm` of the values of every stratum pooled, with a stratified bootstrap CI.
+
+    ``strata`` holds one sample per task (a method's per-seed normalised scores on it); a
+    resample draws each task's seeds with replacement from that task alone, so that every
+    resample keeps each task's number of runs (Agarwal et al. 2021's stratified bootstrap).
+    With fewer than two values in every stratum, or all values equal, the CI is the point.
+    """
+    samples = [np.asarray(v, dtype=np.float64) for v in strata]
+    if not samples or any(v.ndim != 1 or v.size == 0 for v in samples):
+        raise ValueError("strata must hold non-empty 1-D sequences of values")
+
+    def pooled_iqm(*data: Any, axis: int = -1) -> Any:
+        """The IQM over the last axis of the strata side by side (leading axes broadcast:
+        scipy's resamples and jackknife)."""
+        lead = np.broadcast_shapes(*(np.shape(d)[:-1] for d in data))
+        pooled = [np.broadcast_to(d, (*lead, np.shape(d)[-1])) for d in data]
+        return iqm(np.concatenate(pooled, axis=-1), axis=-1)
+
+    point = float(pooled_iqm(*samples))
+    flat = np.concatenate(samples)
+    if all(v.size < 2 for v in samples) or np.all(flat == flat[0]):
+        return Estimate(point, point, point)
+    lo, hi = _bootstrap(tuple(samples), pooled_iqm, level, seed)
     return Estimate(point, lo, hi)

@@ -51,6 +51,9 @@ class QuarterRow:
     """Share of updates past the threshold, per quarter (a fraction; NaN without data)."""
     ratio_dev: tuple[float, ...]
     """Mean abs(rho - 1) of the updates, per quarter (NaN without data)."""
+    approx_kl: tuple[float, ...] | None = None
+    """Approximate KL of the updates, per quarter (a batch grid's; None for an online grid,
+    whose learner logs none)."""
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,14 @@ from .results import EARLY_EPISODES, QUARTERS, Cell
 from .stats import N_RESAMPLES
 from .summary import QuarterRow, Statistics, cell_rows, statistics
 
-__all__ = ["fmt", "fmt_ci", "quarter_markdown", "summary_csv", "summary_markdown"]
+__all__ = [
+    "QUARTER_LEGEND",
+    "fmt",
+    "fmt_ci",
+    "quarter_markdown",
+    "summary_csv",
+    "summary_markdown",
+]
 
 
 def fmt(x: float) -> str:
@@ -38,26 +45,42 @@ def _percent(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{100.0 * x:.2f}"
 
 
-def quarter_markdown(rows: list[QuarterRow]) -> list[str]:
+QUARTER_LEGEND = (
+    "\nWhere in training the surrogates act: a run's training episodes split in order "
+    f"into {QUARTERS} quarters Q1-Q{QUARTERS} (by episodes, not steps: of 200 episodes, "
+    "Q1 is episodes 1-50); per quarter the share of the run's updates whose ratio rho "
+    "was past the threshold and their mean abs(rho - 1), episodes weighted by their "
+    "length (an online learner updates once per step), then the mean over seeds.\n"
+)
+"""The legend of the online grids' quarters table."""
+
+
+def _kl(x: float) -> str:
+    """An approximate KL to three significant digits, ``n/a`` for NaN."""
+    return "n/a" if math.isnan(x) else f"{x:.3g}"
+
+
+def quarter_markdown(rows: list[QuarterRow], legend: str = QUARTER_LEGEND) -> list[str]:
     """The lines of the table of where the surrogates act: per task and method, the share
-    of updates past the threshold and the mean abs(rho - 1), by quarter of training."""
+    of updates past the threshold and the mean abs(rho - 1), by quarter of training, and
+    the approximate KL where the rows have it (batch grids); then ``legend``."""
     quarters = [f"Q{k + 1}" for k in range(QUARTERS)]
+    kl = any(r.approx_kl is not None for r in rows)
+    head = (
+        [f"past the threshold, % {q}" for q in quarters]
+        + [f"abs(rho - 1), % {q}" for q in quarters]
+        + ([f"approx. KL {q}" for q in quarters] if kl else [])
+    )
     lines = [
-        "| task | method | "
-        + " | ".join(f"past the threshold, % {q}" for q in quarters) + " | "
-        + " | ".join(f"abs(rho - 1), % {q}" for q in quarters) + " |",
-        "| --- | --- | " + " | ".join([":---:"] * (2 * QUARTERS)) + " |",
-    ]  # fmt: skip
+        "| task | method | " + " | ".join(head) + " |",
+        "| --- | --- | " + " | ".join([":---:"] * len(head)) + " |",
+    ]
     for r in rows:
         cells = [_percent(v) for v in (*r.past, *r.ratio_dev)]
+        if kl:
+            cells += [_kl(v) for v in (r.approx_kl or (math.nan,) * QUARTERS)]
         lines.append(f"| {r.task} | {r.method} | " + " | ".join(cells) + " |")
-    lines.append(
-        "\nWhere in training the surrogates act: a run's training episodes split in order "
-        f"into {QUARTERS} quarters Q1-Q{QUARTERS} (by episodes, not steps: of 200 episodes, "
-        "Q1 is episodes 1-50); per quarter the share of the run's updates whose ratio rho "
-        "was past the threshold and their mean abs(rho - 1), episodes weighted by their "
-        "length (an online learner updates once per step), then the mean over seeds.\n"
-    )
+    lines.append(legend)
     return lines
 
 
