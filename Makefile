@@ -44,8 +44,9 @@ reproduce: $(VENV)/.installed
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report $(ARGS)
 
-## The same grid at the author's full lengths (HalfCheetah and Ant 2000 episodes, about 9-10
-## hours per task on 2 cores): resumable, into results/paper-full (not committed).
+## The same grid at the author's full lengths (HalfCheetah and Ant 2000 episodes, about 17 CPU
+## hours, docs/results/throughput.md): resumable, into results/paper-full (its checkpoints
+## ignored by git; experiments/collect.py commits runs trained in a folder elsewhere).
 reproduce-paper-full: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper-full.toml --out $(OUT)/paper-full --report $(ARGS)
 

@@ -298,11 +298,35 @@ def batch_mujoco_page(root: Path) -> str:
         "task and pooled over the tasks (rliable's IQM of normalised scores and average "
         "probability of improvement), by environment steps."
     )
-    if (root / BATCH_GRID / "REPORT.md").exists():
-        return report_page(root, BATCH_GRID, title, lead)
-    head = [f"# {title}", "", banner("experiments/batch-mujoco.toml"), "", lead, ""]
+    return report_or_pending(root, BATCH_GRID, "experiments/batch-mujoco.toml", title, lead)
+
+
+def report_or_pending(root: Path, grid: str, spec: str, title: str, lead: str) -> str:
+    """:func:`report_page` of ``grid`` once its REPORT.md is committed; until then a page
+    that says so (generated from the spec ``spec``)."""
+    if (root / grid / "REPORT.md").exists():
+        return report_page(root, grid, title, lead)
+    head = [f"# {title}", "", banner(spec), "", lead, ""]
     return "\n".join([*head, "Not run yet: no results of this grid are committed "
-                      f"(`{BATCH_GRID}/REPORT.md` does not exist).", ""])  # fmt: skip
+                      f"(`{grid}/REPORT.md` does not exist).", ""])  # fmt: skip
+
+
+def reproduction_full_page(root: Path) -> str:
+    """The report of the paper's grid at full length (committed run by run while it runs),
+    or a page that says it has not run yet."""
+    return report_or_pending(
+        root, "results/paper-full", "experiments/paper-full.toml",
+        "The paper's comparison at full length",
+        "`experiments/paper-full.toml`: the paper's four tasks with Table I (the learner of "
+        "[the first reproduction](reproduction.md)), 10 seeds per method, HalfCheetah and Ant "
+        "at the 2000 training episodes of the author's test bed (a tenth of that in the "
+        "first reproduction), the pendulum tasks at 200, 50 test episodes per run. The grid "
+        "runs outside the repository (`pporpe reproduce experiments/paper-full.toml --out "
+        "DIR`, resumable); `python experiments/collect.py DIR results/paper-full` commits "
+        "each finished run, and `pporpe report results/paper-full` writes the report below "
+        "from those committed. *What ran* says how many runs it covers: until every run is "
+        "done, its verdicts are those of the seeds finished.",
+    )  # fmt: skip
 
 
 # --- The learner ablation ---------------------------------------------------------------
@@ -796,6 +820,7 @@ PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/reproduction.md": reproduction_page,
     "docs/results/reproduction-testbed.md": reproduction_testbed_page,
     "docs/results/reproduction-50seeds.md": reproduction_50seeds_page,
+    "docs/results/reproduction-full.md": reproduction_full_page,
     "docs/results/batch-mujoco.md": batch_mujoco_page,
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
