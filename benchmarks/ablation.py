@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -270,7 +271,7 @@ def versus_both(rows: list[dict[str, Any]], reference: str) -> list[dict[str, An
     def complete(variant: str) -> bool:
         return all(methods.get((variant, t)) == set(METHODS) for t in THRESHOLD)
 
-    out = []
+    out: list[dict[str, Any]] = []
     if not complete(reference):
         return out
     for variant in dict.fromkeys(r["variant"] for r in rows):
@@ -356,11 +357,11 @@ def markdown(
         )
     probs: dict[tuple[str, str, str], str] = {}
     for ref, table in comparisons.items():
-        for v in table:
-            probs[(v["task"], v["variant"], ref)] = fmt_p(v["p_above"])
+        for entry in table:
+            probs[(entry["task"], entry["variant"], ref)] = fmt_p(entry["p_above"])
     for ref, table in (both or {}).items():
-        for v in table:
-            probs[("both", v["variant"], ref)] = fmt_p(v["p_above"])
+        for entry in table:
+            probs[("both", entry["variant"], ref)] = fmt_p(entry["p_above"])
     lines = [*summary_table(rows, probs), ""]
     for task in THRESHOLD:
         variants = [v for (t, v) in cells if t == task]
@@ -380,7 +381,7 @@ def markdown(
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--variants",
@@ -417,24 +418,60 @@ def main() -> None:
         help="the variants to compare every other with, P(variant > it) "
         f"(default: {' '.join(REFERENCES)})",
     )
-    args = parser.parse_args()
-    out = Path(args.out)
-    if not args.summarize:
-        for variant in args.variants:
-            spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
-            settings = variant_settings(variant)
-            changed = {k: v for k, v in settings.items() if BASELINE_CHOICES.get(k) != v}
-            print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
-            outcome = reproduce(spec, out / variant, workers=args.workers)
-            print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
-                  f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip
-    # The JSON and the comparisons cover every variant and task on disk, so that a chunk's
-    # command never overwrites the file with a subset; the printout is the chosen ones.
-    names = variants_on_disk(out)
-    every = summarize(out, names, list(THRESHOLD))
-    chosen = {(v, t) for v in args.variants for t in args.tasks}
-    rows = [r for r in every if (r["variant"], r["task"]) in chosen]
-    w = max(map(len, names))
+    return parser.parse_args()
+
+
+def train(args: argparse.Namespace, out: Path) -> None:
+    """Train (or resume) the chosen variants' runs on the chosen tasks, each into out/VARIANT."""
+    for variant in args.variants:
+        spec = spec_for(variant, args.tasks, args.seeds, args.eval_episodes, args.episodes)
+        settings = variant_settings(variant)
+        changed = {k: v for k, v in settings.items() if BASELINE_CHOICES.get(k) != v}
+        print(f"variant {variant}: {changed or 'pporpe 0.2 choices'}", flush=True)
+        outcome = reproduce(spec, out / variant, workers=args.workers)
+        print(f"  {len(outcome.done)} done, {len(outcome.failed)} failed, "
+              f"{outcome.wall_time:.0f} s", flush=True)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Every variant and task with finished runs under ``--out``: the JSON's content."""
+
+    names: list[str]
+    """The variants on disk (:func:`variants_on_disk`)."""
+    rows: list[dict[str, Any]]
+    """:func:`summarize`'s rows, every task of :data:`THRESHOLD`."""
+    versus: dict[str, list[dict[str, Any]]]
+    """Per reference, :func:`versus`'s comparisons."""
+    both: dict[str, list[dict[str, Any]]]
+    """Per reference, :func:`versus_both`'s comparisons."""
+
+    @classmethod
+    def of(cls, out: Path, references: list[str]) -> Summary:
+        names = variants_on_disk(out)
+        rows = summarize(out, names, list(THRESHOLD))
+        return cls(
+            names=names,
+            rows=rows,
+            versus={ref: versus(rows, ref) for ref in references},
+            both={ref: versus_both(rows, ref) for ref in references},
+        )
+
+
+@dataclass(frozen=True)
+class Shown:
+    """What the printout shows: the chosen variants on the chosen tasks."""
+
+    variants: list[str]
+    pairs: set[tuple[str, str]]
+    """Every (variant, task) chosen."""
+    width: int
+    """The width of the variant column."""
+
+
+def print_rows(rows: list[dict[str, Any]], shown: Shown) -> None:
+    """One line per chosen variant, task and method: scores with their CIs."""
+    w = shown.width
     header = (
         f"{'variant':{w}s} {'task':9s} {'method':6s} {'n':>3s} {'mean score [95% CI]':>27s} "
         f"{'IQM [95% CI]':>27s} {'first-50 mean [95% CI]':>27s} {'>= thr':>7s}"
@@ -442,41 +479,66 @@ def main() -> None:
     print(header)
     print("-" * len(header))
     for r in rows:
+        if (r["variant"], r["task"]) not in shown.pairs:
+            continue
         print(
             f"{r['variant']:{w}s} {r['task']:9s} {r['method']:6s} {r['seeds']:3d} "
             f"{fmt(r['mean']):>27s} {fmt(r['iqm']):>27s} {fmt(r['first50_mean_return']):>27s} "
             f"{r['seeds_reaching']:3d}/{r['seeds']:<3d}"
         )
-    references = list(dict.fromkeys(args.versus))
-    comparisons = {ref: versus(every, ref) for ref in references}
-    both = {ref: versus_both(every, ref) for ref in references}
-    for ref, table in comparisons.items():
-        shown = [v for v in table if (v["variant"], v["task"]) in chosen]
-        if not shown:
+
+
+def print_versus(summary: Summary, shown: Shown) -> None:
+    """The chosen variants' comparisons with each reference, per task then over both."""
+    w = shown.width
+    for ref, table in summary.versus.items():
+        per_task = [v for v in table if (v["variant"], v["task"]) in shown.pairs]
+        if not per_task:
             continue
         print(f"\nP(variant > {ref}), the three methods' runs pooled [95% CI]:")
-        for v in shown:
+        for v in per_task:
             ci = fmt_p(v["p_above"])
             runs = f"({v['runs']} vs {v['reference_runs']} runs)"
             print(f"{v['variant']:{w}s} {v['task']:9s} {ci}  {runs}")
-    for ref, table in both.items():
-        shown = [v for v in table if v["variant"] in args.variants]
-        if not shown:
+    for ref, table in summary.both.items():
+        averaged = [v for v in table if v["variant"] in shown.variants]
+        if not averaged:
             continue
         print(f"\nP(variant > {ref}), mean over both tasks [95% CI]:")
-        for v in shown:
+        for v in averaged:
             print(f"{v['variant']:{w}s} {fmt_p(v['p_above'])}")
+
+
+def write_outputs(summary: Summary, json_path: str, markdown_path: str) -> None:
+    """The JSON (with the variants' settings) and the Markdown tables."""
     payload = {
-        "variants": {n: variant_settings(n) for n in names},
-        "rows": every,
-        "versus": comparisons,
-        "versus_both_tasks": both,
+        "variants": {n: variant_settings(n) for n in summary.names},
+        "rows": summary.rows,
+        "versus": summary.versus,
+        "versus_both_tasks": summary.both,
     }
-    path = write_json(args.json, payload)
+    path = write_json(json_path, payload)
     print(f"wrote {path}")
     header = f"<!-- written by: {payload_command()} -->\n\n"
-    md = atomic_write_text(args.markdown, header + markdown(every, comparisons, both))
+    md = atomic_write_text(
+        markdown_path, header + markdown(summary.rows, summary.versus, summary.both)
+    )
     print(f"wrote {md}")
+
+
+def main() -> None:
+    args = parse_args()
+    out = Path(args.out)
+    if not args.summarize:
+        train(args, out)
+    # The JSON and the comparisons cover every variant and task on disk, so that a chunk's
+    # command never overwrites the file with a subset; the printout is the chosen ones.
+    summary = Summary.of(out, list(dict.fromkeys(args.versus)))
+    pairs = {(v, t) for v in args.variants for t in args.tasks}
+    shown = Shown(args.variants, pairs, width=max(map(len, summary.names)))
+    print_rows(summary.rows, shown)
+    print_versus(summary, shown)
+    write_outputs(summary, args.json, args.markdown)
 
 
 if __name__ == "__main__":

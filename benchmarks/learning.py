@@ -21,19 +21,29 @@ import json
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.grid import GridSpec, parse_spec
 from pporpe.experiments.reproduce import reproduce
 
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 
 
-def main() -> None:
+@dataclass(frozen=True)
+class Task:
+    """A task of the grid and its training episodes per run."""
+
+    env: str
+    episodes: int
+
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", nargs="+", default=["pendulum", "swingup"])
     parser.add_argument("--methods", nargs="+", default=["ppo", "rb", "rpe"])
@@ -49,57 +59,61 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--out", default="benchmarks/results/learning_runs")
     parser.add_argument("--json", default="benchmarks/results/learning.json")
-    args = parser.parse_args()
+    return parser.parse_args()
 
-    tasks = []
-    for env in args.tasks:
-        eps = args.swingup_episodes if env == "swingup" and args.swingup_episodes else args.episodes
-        tasks.append({"env": env, "episodes": eps})
-    spec = parse_spec(
+
+def tasks_of(args: argparse.Namespace) -> list[Task]:
+    """The chosen tasks, Swingup with ``--swingup-episodes`` where given."""
+    swingup = args.swingup_episodes
+    return [
+        Task(env, swingup if env == "swingup" and swingup else args.episodes) for env in args.tasks
+    ]
+
+
+def spec_for(args: argparse.Namespace, tasks: list[Task]) -> GridSpec:
+    """The grid of every method, task and seed, as ``pporpe reproduce`` runs it."""
+    return parse_spec(
         {
             "name": "learning",
             "methods": args.methods,
             "seeds": args.seeds,
             "eval_episodes": args.eval_episodes,
-            "tasks": tasks,
+            "tasks": [{"env": t.env, "episodes": t.episodes} for t in tasks],
         },
         "learning",
     )
-    t0 = time.perf_counter()
-    outcome = reproduce(spec, args.out, workers=args.workers, progress=True)
-    wall = time.perf_counter() - t0
 
-    rows = []
-    for task in tasks:
-        env = task["env"]
-        for method in args.methods:
-            scores, steps = {}, {}
-            for seed in range(args.seeds):
-                run = Path(args.out) / env / method / f"seed{seed}"
-                ev = run / "evaluation.json"
-                if ev.exists():
-                    scores[seed] = json.loads(ev.read_text())["median"]
-                    steps[seed] = json.loads((run / "done.json").read_text())["total_steps"]
-            vals = list(scores.values())
-            thr = THRESHOLD.get(env)
-            rows.append(
-                {
-                    "env": env,
-                    "method": method,
-                    "episodes": task["episodes"],
-                    "scores": scores,
-                    "train_steps": steps,
-                    "median_over_seeds": statistics.median(vals) if vals else None,
-                    "mean_over_seeds": statistics.fmean(vals) if vals else None,
-                    "seeds_reaching_threshold": (sum(v >= thr for v in vals) if thr else None),
-                    "threshold": thr,
-                    "seeds": len(vals),
-                }
-            )
 
+def summary_row(out: Path, task: Task, method: str, seeds: int) -> dict[str, Any]:
+    """One method's row on one task: the scores of its finished seeds, their median, mean
+    and the seeds at the threshold."""
+    scores, steps = {}, {}
+    for seed in range(seeds):
+        run = out / task.env / method / f"seed{seed}"
+        ev = run / "evaluation.json"
+        if ev.exists():
+            scores[seed] = json.loads(ev.read_text())["median"]
+            steps[seed] = json.loads((run / "done.json").read_text())["total_steps"]
+    vals = list(scores.values())
+    thr = THRESHOLD.get(task.env)
+    return {
+        "env": task.env,
+        "method": method,
+        "episodes": task.episodes,
+        "scores": scores,
+        "train_steps": steps,
+        "median_over_seeds": statistics.median(vals) if vals else None,
+        "mean_over_seeds": statistics.fmean(vals) if vals else None,
+        "seeds_reaching_threshold": (sum(v >= thr for v in vals) if thr else None),
+        "threshold": thr,
+        "seeds": len(vals),
+    }
+
+
+def print_table(rows: list[dict[str, Any]], eval_episodes: int) -> None:
     print(
         f"\n{'task':9s} {'method':7s} {'eps':>5s} {'median':>8s} {'mean':>8s} "
-        f"{'>=thr':>6s}  per-seed medians of {args.eval_episodes} test episodes"
+        f"{'>=thr':>6s}  per-seed medians of {eval_episodes} test episodes"
     )
     for r in rows:
         med = f"{r['median_over_seeds']:.1f}" if r["median_over_seeds"] is not None else "n/a"
@@ -114,6 +128,17 @@ def main() -> None:
         "targets: PPO-RPE pendulum >= 950 in >= 4/5 seeds (200 episodes); "
         "PPO-RPE swingup median over seeds >= 800 (200 episodes)"
     )
+
+
+def main() -> None:
+    args = parse_args()
+    tasks = tasks_of(args)
+    t0 = time.perf_counter()
+    outcome = reproduce(spec_for(args, tasks), args.out, workers=args.workers, progress=True)
+    wall = time.perf_counter() - t0
+    out = Path(args.out)
+    rows = [summary_row(out, task, method, args.seeds) for task in tasks for method in args.methods]
+    print_table(rows, args.eval_episodes)
     print(f"wall time {wall:.0f} s; failed runs: {list(outcome.failed) or 'none'}")
     path = write_json(
         args.json,

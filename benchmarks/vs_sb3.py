@@ -42,9 +42,11 @@ import statistics
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -55,7 +57,12 @@ from _common import write_json
 
 from pporpe.batch import BatchConfig, BatchLearner, UpdateStats, train_batch, zoo_config
 from pporpe.envs import make_env
-from pporpe.evaluation import EVAL_SEED_OFFSET, evaluate_policy
+from pporpe.evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy
+
+if TYPE_CHECKING:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecNormalize
 
 BUDGETS: dict[str, dict[str, dict[str, int]]] = {
     # total_steps per run (whole rollouts); evaluate every N updates (0: only at the end)
@@ -73,53 +80,147 @@ BUDGETS: dict[str, dict[str, dict[str, int]]] = {
 
 OURS = ("ppo", "rb", "rpe")
 
+Policy = Callable[[np.ndarray], np.ndarray]
+"""A deterministic policy: observations of one environment to its action."""
 
-def _history_time_to(history: list[dict[str, float]], threshold: float) -> float | None:
+
+@dataclass(frozen=True)
+class Budget:
+    """One task's budget (an entry of :data:`BUDGETS`)."""
+
+    steps: int
+    """Environment steps per run (rounded by ``zoo_config`` to whole rollouts)."""
+    eval_every: int
+    """Test after every this many updates (0: only after the last)."""
+    eval_episodes: int
+    """Test episodes of each test on the way."""
+    final: int
+    """Test episodes after training."""
+
+    @classmethod
+    def of(cls, budget: str, env: str, steps: int | None) -> Budget:
+        """The task's entry of ``BUDGETS[budget]`` (HalfCheetah's for a task without one),
+        with ``steps`` in place of its steps unless None."""
+        chosen = cls(**BUDGETS[budget].get(env, BUDGETS[budget]["halfcheetah"]))
+        return chosen if steps is None else replace(chosen, steps=steps)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A test on the way (a point of a run's history)."""
+
+    steps: int
+    """Environment steps trained so far."""
+    train_time: float
+    """Training seconds so far (evaluations excluded)."""
+    median: float
+    """Median return of the test episodes."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """One trainer's run on one seed, as ``runs`` of the JSON keeps it."""
+
+    steps: int
+    train_time: float
+    steps_per_s: float
+    history: tuple[Evaluation, ...]
+    final_median: float
+    final_returns: list[float]
+    seed: int
+    time_to_threshold: float | None
+    """Training seconds up to the first test at or above the threshold (None: never)."""
+
+
+def _history_time_to(history: tuple[Evaluation, ...], threshold: float) -> float | None:
     for h in history:
-        if h["median"] >= threshold:
-            return h["train_time"]
+        if h.median >= threshold:
+            return h.train_time
     return None
 
 
-def run_ours(
-    cfg: BatchConfig, eval_every: int, eval_episodes: int, final_episodes: int
-) -> dict[str, Any]:
+class Evaluations:
+    """The tests of one run, on its budget's schedule: ``eval_episodes`` test episodes after
+    every ``eval_every`` updates and after the last, and ``final`` test episodes after the
+    last (``pporpe.evaluation.evaluate_policy``, environment seed ``seed + EVAL_SEED_OFFSET``)."""
+
+    def __init__(self, cfg: BatchConfig, budget: Budget) -> None:
+        self.cfg = cfg
+        self.budget = budget
+        self.history: list[Evaluation] = []
+        self.final: EvalResult | None = None
+
+    def after_update(
+        self, act: Policy, updates: int, steps: int, train_time: float, last: bool
+    ) -> None:
+        """Test as the schedule says after update number ``updates`` (``last``: the run's last)."""
+        env, every, seed = self.cfg.env, self.budget.eval_every, self.cfg.seed + EVAL_SEED_OFFSET
+        if (every and updates % every == 0) or last:
+            ev = evaluate_policy(act, env, self.budget.eval_episodes, seed)
+            self.history.append(Evaluation(steps, train_time, ev.median))
+        if last:
+            self.final = evaluate_policy(act, env, self.budget.final, seed)
+
+    def on_batch_update(self, learner: BatchLearner, stats: UpdateStats, train_time: float) -> None:
+        """``train_batch``'s ``on_update``."""
+        last = learner.updates == self.cfg.n_updates
+        self.after_update(
+            learner.act_deterministic, learner.updates, learner.total_steps, train_time, last
+        )
+
+    def result(self, steps: int, train_time: float, threshold: float) -> RunResult:
+        """The run's result, once trained for ``steps`` in ``train_time`` training seconds."""
+        assert self.final is not None, "the run has not finished"
+        history = tuple(self.history)
+        return RunResult(
+            steps=steps,
+            train_time=train_time,
+            steps_per_s=steps / train_time,
+            history=history,
+            final_median=self.final.median,
+            final_returns=self.final.returns,
+            seed=self.cfg.seed,
+            time_to_threshold=_history_time_to(history, threshold),
+        )
+
+
+def run_ours(cfg: BatchConfig, budget: Budget, threshold: float) -> RunResult:
     """Train with ``train_batch`` (run folder in a temporary directory), evaluating on the way."""
-    history: list[dict[str, float]] = []
-    eval_seed = cfg.seed + EVAL_SEED_OFFSET
-    final: dict[str, Any] = {}
-
-    def on_update(learner: BatchLearner, stats: UpdateStats, train_time: float) -> None:
-        if (eval_every and learner.updates % eval_every == 0) or learner.updates == cfg.n_updates:
-            ev = evaluate_policy(learner.act_deterministic, cfg.env, eval_episodes, eval_seed)
-            history.append(
-                {"steps": learner.total_steps, "train_time": train_time, "median": ev.median}
-            )
-        if learner.updates == cfg.n_updates:
-            ev = evaluate_policy(learner.act_deterministic, cfg.env, final_episodes, eval_seed)
-            final["final_median"] = ev.median
-            final["final_returns"] = ev.returns
-
+    tests = Evaluations(cfg, budget)
     with tempfile.TemporaryDirectory() as tmp:
-        result = train_batch(replace(cfg, eval_episodes=0), Path(tmp) / "run", False, on_update)
-    return {
-        "steps": result.total_steps,
-        "train_time": result.train_time,
-        "steps_per_s": result.total_steps / result.train_time,
-        "history": history,
-        **final,
-    }
+        run_dir = Path(tmp) / "run"
+        result = train_batch(replace(cfg, eval_episodes=0), run_dir, False, tests.on_batch_update)
+    return tests.result(result.total_steps, result.train_time, threshold)
 
 
-def run_sb3(
-    cfg: BatchConfig, eval_every: int, eval_episodes: int, final_episodes: int
-) -> dict[str, Any]:
-    """Train Stable-Baselines3's PPO with the same settings, evaluating on the same schedule."""
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
+class Stopwatch:
+    """Training seconds: the wall time since :meth:`start`, less the pauses."""
+
+    def __init__(self) -> None:
+        self.started = 0.0
+        self.excluded = 0.0
+        self.paused = 0.0
+
+    def start(self) -> None:
+        self.started = time.perf_counter()
+
+    def pause(self) -> float:
+        """Stop counting; returns the training seconds so far."""
+        self.paused = time.perf_counter()
+        return self.paused - self.started - self.excluded
+
+    def resume(self) -> None:
+        self.excluded += time.perf_counter() - self.paused
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.started - self.excluded
+
+
+def _sb3_env(cfg: BatchConfig) -> VecNormalize:
+    """The task's ``n_envs`` environments stepped in turn, normalised as ours are."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    venv = VecNormalize(
+    return VecNormalize(
         DummyVecEnv([(lambda: make_env(cfg.env)) for _ in range(cfg.n_envs)]),
         norm_obs=cfg.normalize_obs,
         norm_reward=cfg.normalize_reward,
@@ -128,8 +229,14 @@ def run_sb3(
         gamma=cfg.gamma,
         epsilon=1e-8,
     )
+
+
+def _sb3_model(cfg: BatchConfig, venv: VecNormalize) -> PPO:
+    """SB3's PPO with ``cfg``'s hyperparameters, network and initialisation."""
+    from stable_baselines3 import PPO
+
     activation = {"relu": torch.nn.ReLU, "tanh": torch.nn.Tanh, "swish": torch.nn.SiLU}
-    model = PPO(
+    return PPO(
         "MlpPolicy",
         venv,
         learning_rate=cfg.lr,
@@ -156,69 +263,64 @@ def run_sb3(
             log_std_init=cfg.log_std_init,
         ),
     )
-    history: list[dict[str, float]] = []
-    eval_seed = cfg.seed + EVAL_SEED_OFFSET
-    out: dict[str, Any] = {}
 
-    def act(obs: np.ndarray) -> np.ndarray:
-        action, _ = model.predict(venv.normalize_obs(obs), deterministic=True)
-        return np.asarray(action)
+
+def _sb3_act(model: PPO, venv: VecNormalize, obs: np.ndarray) -> np.ndarray:
+    """The model's deterministic action for raw observations (normalised with frozen stats)."""
+    action, _ = model.predict(venv.normalize_obs(obs), deterministic=True)
+    return np.asarray(action)
+
+
+def _sb3_callback(act: Policy, tests: Evaluations, clock: Stopwatch) -> BaseCallback:
+    """An SB3 callback that counts the updates and hands each to ``tests``, its time paused."""
+    from stable_baselines3.common.callbacks import BaseCallback
 
     class Evaluate(BaseCallback):
-        def __init__(self) -> None:
+        def __init__(self, act: Policy, tests: Evaluations, clock: Stopwatch) -> None:
             super().__init__()
-            self.excluded = 0.0
+            self.act, self.tests, self.clock = act, tests, clock
             self.updates = 0
 
         def _on_step(self) -> bool:
             return True
 
-        def _evaluate(self, final: bool) -> None:
-            t = time.perf_counter()
-            if (eval_every and self.updates % eval_every == 0) or final:
-                ev = evaluate_policy(act, cfg.env, eval_episodes, eval_seed)
-                history.append(
-                    {
-                        "steps": int(self.num_timesteps),
-                        "train_time": t - t0 - self.excluded,
-                        "median": ev.median,
-                    }
-                )
-            if final:
-                ev = evaluate_policy(act, cfg.env, final_episodes, eval_seed)
-                out["final_median"] = ev.median
-                out["final_returns"] = ev.returns
-            self.excluded += time.perf_counter() - t
+        def _after_update(self, last: bool) -> None:
+            train_time = self.clock.pause()
+            self.tests.after_update(
+                self.act, self.updates, int(self.num_timesteps), train_time, last
+            )
+            self.clock.resume()
 
         def _on_rollout_start(self) -> None:  # after each update but the last
             if self.num_timesteps > 0:
                 self.updates += 1
-                self._evaluate(final=False)
+                self._after_update(last=False)
 
         def _on_training_end(self) -> None:
             self.updates += 1
-            self._evaluate(final=True)
+            self._after_update(last=True)
 
-    callback = Evaluate()
-    t0 = time.perf_counter()
+    return Evaluate(act, tests, clock)
+
+
+def run_sb3(cfg: BatchConfig, budget: Budget, threshold: float) -> RunResult:
+    """Train Stable-Baselines3's PPO with the same settings, evaluating on the same schedule."""
+    venv = _sb3_env(cfg)
+    model = _sb3_model(cfg, venv)
+    tests, clock = Evaluations(cfg, budget), Stopwatch()
+    callback = _sb3_callback(partial(_sb3_act, model, venv), tests, clock)
+    clock.start()
     model.learn(total_timesteps=cfg.n_updates * cfg.rollout_size, callback=callback)
-    train_time = time.perf_counter() - t0 - callback.excluded
+    train_time = clock.elapsed()
     venv.close()
-    steps = int(model.num_timesteps)
-    return {
-        "steps": steps,
-        "train_time": train_time,
-        "steps_per_s": steps / train_time,
-        "history": history,
-        **out,
-    }
+    return tests.result(int(model.num_timesteps), train_time, threshold)
 
 
 def _median(xs: list[float]) -> float:
     return float(statistics.median(xs)) if xs else float("nan")
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=["pendulum", "halfcheetah"])
     parser.add_argument("--seeds", type=int, default=3, help="seeds per trainer (>= 3)")
@@ -228,120 +330,163 @@ def main() -> None:
     parser.add_argument("--no-sb3", action="store_true", help="skip Stable-Baselines3")
     parser.add_argument("--threshold", type=float, default=950.0, help="test return for (c)")
     parser.add_argument("--out", default="benchmarks/results/vs_sb3.json")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+    return parser.parse_args()
 
-    trainers = ([] if args.no_sb3 else ["sb3"]) + list(args.methods)
-    rows: list[dict[str, Any]] = []
-    runs: dict[str, dict[str, list[dict[str, Any]]]] = {}
-    t_all = time.perf_counter()
-    for env in args.envs:
-        budget = dict(BUDGETS[args.budget].get(env, BUDGETS[args.budget]["halfcheetah"]))
-        if args.steps is not None:
-            budget["steps"] = args.steps
-        base = zoo_config(env, total_steps=budget["steps"])
-        runs[env] = {k: [] for k in trainers}
-        print(
-            f"== {env}: {base.n_updates} updates x {base.rollout_size} steps "
-            f"= {base.n_updates * base.rollout_size} steps per run, {args.seeds} seeds, "
-            f"eval every {budget['eval_every']} updates ({budget['eval_episodes']} episodes), "
-            f"final {budget['final']} episodes",
-            flush=True,
-        )
-        for seed in range(args.seeds):
-            order = trainers[seed % len(trainers) :] + trainers[: seed % len(trainers)]
-            for name in order:
-                cfg = replace(base, seed=seed, method=name if name != "sb3" else "ppo")
-                fn = run_sb3 if name == "sb3" else run_ours
-                res = fn(cfg, budget["eval_every"], budget["eval_episodes"], budget["final"])
-                res["seed"] = seed
-                res["time_to_threshold"] = _history_time_to(res["history"], args.threshold)
-                runs[env][name].append(res)
-                ttt = res["time_to_threshold"]
-                print(
-                    f"  seed {seed} {name:4s}: {res['steps_per_s']:7.0f} steps/s, "
-                    f"final median {res['final_median']:8.1f}, "
-                    f"time to {args.threshold:g}: "
-                    f"{'-' if ttt is None else f'{ttt:.1f} s'}",
-                    flush=True,
-                )
-        sb3 = runs[env].get("sb3", [])
-        for name in trainers:
-            rs = runs[env][name]
-            sps = [r["steps_per_s"] for r in rs]
-            final = [r["final_median"] for r in rs]
-            ttt = [r["time_to_threshold"] for r in rs]
-            reached = [t for t in ttt if t is not None]
-            row: dict[str, Any] = {
-                "env": env,
-                "trainer": name,
-                "config": {
-                    k: v
-                    for k, v in vars(replace(base, method="ppo" if name == "sb3" else name)).items()
-                },
-                "steps": rs[0]["steps"],
-                "steps_per_s": _median(sps),
-                "final_median": _median(final),
-                "time_to_threshold": _median(reached) if len(reached) == len(rs) else None,
-                "reached": f"{len(reached)}/{len(rs)}",
-            }
-            if sb3 and name != "sb3":
-                ratios = [a["steps_per_s"] / b["steps_per_s"] for a, b in zip(rs, sb3, strict=True)]
-                row["sps_ratio_vs_sb3"] = _median(ratios)
-                row["final_minus_sb3"] = row["final_median"] - _median(
-                    [r["final_median"] for r in sb3]
-                )
-                t_sb3 = [r["time_to_threshold"] for r in sb3]
-                if all(t is not None for t in ttt + t_sb3):
-                    row["time_ratio_vs_sb3"] = _median(
-                        [a / b for a, b in zip(ttt, t_sb3, strict=True)]
-                    )
-            rows.append(row)
-    wall = time.perf_counter() - t_all
 
+def _method(trainer: str) -> Any:
+    """The pporpe method of a trainer's configuration (SB3's is PPO)."""
+    return "ppo" if trainer == "sb3" else trainer
+
+
+def _announce(env: str, base: BatchConfig, budget: Budget, seeds: int) -> None:
+    print(
+        f"== {env}: {base.n_updates} updates x {base.rollout_size} steps "
+        f"= {base.n_updates * base.rollout_size} steps per run, {seeds} seeds, "
+        f"eval every {budget.eval_every} updates ({budget.eval_episodes} episodes), "
+        f"final {budget.final} episodes",
+        flush=True,
+    )
+
+
+def _print_run(name: str, res: RunResult, threshold: float) -> None:
+    ttt = res.time_to_threshold
+    print(
+        f"  seed {res.seed} {name:4s}: {res.steps_per_s:7.0f} steps/s, "
+        f"final median {res.final_median:8.1f}, "
+        f"time to {threshold:g}: "
+        f"{'-' if ttt is None else f'{ttt:.1f} s'}",
+        flush=True,
+    )
+
+
+def train_task(
+    base: BatchConfig, budget: Budget, trainers: list[str], seeds: int, threshold: float
+) -> dict[str, list[RunResult]]:
+    """Every trainer's runs on one task, seed by seed, the trainers' order rotating."""
+    runs: dict[str, list[RunResult]] = {name: [] for name in trainers}
+    for seed in range(seeds):
+        order = trainers[seed % len(trainers) :] + trainers[: seed % len(trainers)]
+        for name in order:
+            cfg = replace(base, seed=seed, method=_method(name))
+            train = run_sb3 if name == "sb3" else run_ours
+            res = train(cfg, budget, threshold)
+            runs[name].append(res)
+            _print_run(name, res, threshold)
+    return runs
+
+
+def _against_sb3(rs: list[RunResult], sb3: list[RunResult], final_median: float) -> dict[str, Any]:
+    """A trainer's ratios to SB3's runs (seed by seed) and its final median less SB3's."""
+    ratios = [a.steps_per_s / b.steps_per_s for a, b in zip(rs, sb3, strict=True)]
+    against: dict[str, Any] = {
+        "sps_ratio_vs_sb3": _median(ratios),
+        "final_minus_sb3": final_median - _median([r.final_median for r in sb3]),
+    }
+    ttt = [r.time_to_threshold for r in rs if r.time_to_threshold is not None]
+    t_sb3 = [r.time_to_threshold for r in sb3 if r.time_to_threshold is not None]
+    if len(ttt) == len(rs) and len(t_sb3) == len(sb3):
+        against["time_ratio_vs_sb3"] = _median([a / b for a, b in zip(ttt, t_sb3, strict=True)])
+    return against
+
+
+def summary_row(
+    env: str, name: str, base: BatchConfig, rs: list[RunResult], sb3: list[RunResult]
+) -> dict[str, Any]:
+    """A trainer's row of the JSON's ``rows``: medians over its seeds, then against SB3."""
+    reached = [r.time_to_threshold for r in rs if r.time_to_threshold is not None]
+    final = _median([r.final_median for r in rs])
+    row: dict[str, Any] = {
+        "env": env,
+        "trainer": name,
+        "config": dict(vars(replace(base, method=_method(name)))),
+        "steps": rs[0].steps,
+        "steps_per_s": _median([r.steps_per_s for r in rs]),
+        "final_median": final,
+        "time_to_threshold": _median(reached) if len(reached) == len(rs) else None,
+        "reached": f"{len(reached)}/{len(rs)}",
+    }
+    if sb3 and name != "sb3":
+        row.update(_against_sb3(rs, sb3, final))
+    return row
+
+
+def _num(x: Any, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def print_table(rows: list[dict[str, Any]], threshold: float, wall: float) -> None:
     print()
     header = (
         f"{'env':12s} {'trainer':7s} {'steps':>8s} {'steps/s':>8s} {'x SB3':>6s} "
-        f"{'final med':>10s} {'- SB3':>8s} {'t->' + format(args.threshold, 'g'):>8s} "
+        f"{'final med':>10s} {'- SB3':>8s} {'t->' + format(threshold, 'g'):>8s} "
         f"{'x SB3':>6s} {'reached':>7s}"
     )
     print(header)
     print("-" * len(header))
     for r in rows:
-
-        def f(x: Any, spec: str) -> str:
-            return "-" if x is None else format(x, spec)
-
         print(
             f"{r['env']:12s} {r['trainer']:7s} {r['steps']:8d} {r['steps_per_s']:8.0f} "
-            f"{f(r.get('sps_ratio_vs_sb3'), '6.2f'):>6s} {r['final_median']:10.1f} "
-            f"{f(r.get('final_minus_sb3'), '+8.1f'):>8s} "
-            f"{f(r['time_to_threshold'], '8.1f'):>8s} "
-            f"{f(r.get('time_ratio_vs_sb3'), '6.2f'):>6s} {r['reached']:>7s}"
+            f"{_num(r.get('sps_ratio_vs_sb3'), '6.2f'):>6s} {r['final_median']:10.1f} "
+            f"{_num(r.get('final_minus_sb3'), '+8.1f'):>8s} "
+            f"{_num(r['time_to_threshold'], '8.1f'):>8s} "
+            f"{_num(r.get('time_ratio_vs_sb3'), '6.2f'):>6s} {r['reached']:>7s}"
         )
     print(
         f"targets: steps/s x SB3 >= 1.2; final median >= SB3's; time to "
-        f"{args.threshold:g} ours/SB3 (lower is better). Total wall time {wall:.0f} s."
+        f"{threshold:g} ours/SB3 (lower is better). Total wall time {wall:.0f} s."
     )
+
+
+def _sb3_version() -> str | None:
     try:
         from importlib.metadata import version
 
-        sb3_version = version("stable-baselines3")
+        return version("stable-baselines3")
     except Exception:
-        sb3_version = None
-    path = write_json(
+        return None
+
+
+def write_results(
+    args: argparse.Namespace,
+    wall: float,
+    rows: list[dict[str, Any]],
+    runs: dict[str, dict[str, list[RunResult]]],
+) -> Path:
+    return write_json(
         args.out,
         {
             "budget": args.budget,
             "budgets": {env: BUDGETS[args.budget].get(env) for env in args.envs},
             "seeds": args.seeds,
             "threshold": args.threshold,
-            "stable_baselines3": sb3_version,
+            "stable_baselines3": _sb3_version(),
             "wall_time_s": wall,
             "rows": rows,
-            "runs": runs,
+            "runs": {
+                env: {name: [asdict(r) for r in rs] for name, rs in by_trainer.items()}
+                for env, by_trainer in runs.items()
+            },
         },
     )
+
+
+def main() -> None:
+    args = parse_args()
+    torch.set_num_threads(1)
+    trainers = ([] if args.no_sb3 else ["sb3"]) + list(args.methods)
+    rows: list[dict[str, Any]] = []
+    runs: dict[str, dict[str, list[RunResult]]] = {}
+    t_all = time.perf_counter()
+    for env in args.envs:
+        budget = Budget.of(args.budget, env, args.steps)
+        base = zoo_config(env, total_steps=budget.steps)
+        _announce(env, base, budget, args.seeds)
+        runs[env] = train_task(base, budget, trainers, args.seeds, args.threshold)
+        sb3 = runs[env].get("sb3", [])
+        rows += [summary_row(env, name, base, runs[env][name], sb3) for name in trainers]
+    wall = time.perf_counter() - t_all
+    print_table(rows, args.threshold, wall)
+    path = write_results(args, wall, rows, runs)
     print(f"wrote {path}")
 
 
