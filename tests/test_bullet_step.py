@@ -15,6 +15,7 @@ from pybullet_envs_gymnasium.gym_locomotion_envs import AntBulletEnv, HalfCheeta
 
 from pporpe.batch import BatchConfig
 from pporpe.bullet_step import (
+    _AT_LIMIT,
     AntBatchedEnv,
     HalfCheetahBatchedEnv,
     InvertedPendulumBatchedEnv,
@@ -105,6 +106,19 @@ def test_mean_xy_is_the_reference_mean(positions: list[tuple[float, float, float
     for got, want in zip(mean_xy(positions), (flat[0::3].mean(), flat[1::3].mean()), strict=True):
         assert type(got) is type(want)
         assert got.tobytes() == want.tobytes()
+
+
+def test_the_joints_at_limit_threshold_is_numpys() -> None:
+    """``abs(x) > _AT_LIMIT`` on a float32 number as a Python float is numpy's
+    ``np.abs(x) > 0.99`` on the float32 array, at the float32 neighbours of 0.99 too."""
+    t = np.float32(0.99)
+    edges = [np.nextafter(t, np.float32(2)), t, np.nextafter(t, np.float32(0)), 0.99]
+    rng = np.random.default_rng(0)
+    x = np.array([*edges, *(-e for e in edges), np.nan, np.inf, -np.inf], dtype=np.float32)
+    x = np.concatenate([x, rng.uniform(-1.5, 1.5, 10_000).astype(np.float32)])
+    want = np.abs(x) > 0.99
+    got = np.array([abs(v) > _AT_LIMIT for v in x.tolist()])
+    assert (got == want).all()
 
 
 def test_a_static_base_is_read_once_and_never_moves() -> None:

@@ -232,37 +232,46 @@ def feet_on_ground(layout: WalkerLayout, feet_contact: np.ndarray) -> None:
     feet_contact[:] = [1.0 if foot in touching else 0.0 for foot in layout.feet]
 
 
-def walker_state(env: Any, layout: WalkerLayout) -> np.ndarray:
-    """``WalkerBase.calc_state``: the observation, and the robot's attributes it sets.
+_AT_LIMIT = float(np.float32(0.99))
+"""The joints-at-limit threshold: numpy compares a float32 array with the Python float 0.99
+in float32 (a Python scalar takes the array's type), that is with float32(0.99)."""
 
-    The observation's numbers are computed as Python floats (or numpy scalars, where the
-    reference calls numpy) and made float32 in one array; the joints' features in it,
-    before the clip, are the reference's float32 joint array."""
+
+def walker_state(env: Any, layout: WalkerLayout) -> tuple[np.ndarray, list[float]]:
+    """``WalkerBase.calc_state``: the observation, the same as Python floats, and the robot's
+    attributes it sets.
+
+    The observation's numbers are computed as Python floats (numpy scalars where the
+    reference calls numpy on them) and made float32 in one array, which holds the
+    reference's float32 joint features before the clip."""
     robot = env.robot
     features = joint_features(layout)
     positions, (torso_xyz, torso_quat) = part_poses(layout)
     robot.body_real_xyz = np.array(torso_xyz)
-    body_z = robot.body_real_xyz[2]
-    robot.body_xyz = (*mean_xy(positions), body_z)
+    robot.body_xyz = (*mean_xy(positions), torso_xyz[2])
     robot.body_rpy = pybullet.getEulerFromQuaternion(torso_quat)
     r, p, yaw = robot.body_rpy
     dy = robot.walk_target_y - robot.body_xyz[1]
     dx = robot.walk_target_x - robot.body_xyz[0]
     robot.walk_target_theta = np.arctan2(dy, dx)
     to_target = np.array([dy, dx])
-    robot.walk_target_dist = np.sqrt(to_target.dot(to_target))  # np.linalg.norm's own steps
+    # np.linalg.norm's own steps; math.sqrt rounds as np.sqrt does (both IEEE)
+    robot.walk_target_dist = np.float64(math.sqrt(to_target.dot(to_target)))
     angle_to_target = robot.walk_target_theta - yaw
     cos, sin = np.cos(-yaw), np.sin(-yaw)
     rot_speed = np.array([cos, -sin, 0.0, sin, cos, 0.0, 0.0, 0.0, 1.0]).reshape(3, 3)
     vx, vy, vz = np.dot(rot_speed, torso_speed(layout)).tolist()
-    more = [body_z - robot.initial_z, np.sin(angle_to_target), np.cos(angle_to_target),
+    more = [torso_xyz[2] - robot.initial_z, np.sin(angle_to_target), np.cos(angle_to_target),
             0.3 * vx, 0.3 * vy, 0.3 * vz, r, p]  # fmt: skip
     full = np.array(more + features + robot.feet_contact.tolist(), dtype=np.float32)
     end = 8 + len(features)
     robot.joint_speeds = full[9:end:2]
-    robot.joints_at_limit = np.count_nonzero(np.abs(full[8:end:2]) > 0.99)
     state = np.maximum(full, -5)
-    return np.minimum(state, +5, out=state)  # np.clip's own steps
+    np.minimum(state, +5, out=state)  # np.clip's own steps
+    values = state.tolist()
+    # |clip(x)| > 0.99 exactly where |x| > 0.99
+    robot.joints_at_limit = sum([abs(x) > _AT_LIMIT for x in values[8:end:2]])
+    return state, values
 
 
 class BatchedWalkerStep:
@@ -287,12 +296,12 @@ class BatchedWalkerStep:
         robot = env.robot
         apply_torques(layout, a)
         pybullet.stepSimulation(physicsClientId=layout.client)
-        state = walker_state(env, layout)
-        env._alive = float(robot.alive_bonus(state[0] + robot.initial_z, robot.body_rpy[1]))
+        state, values = walker_state(env, layout)
+        env._alive = float(robot.alive_bonus(values[0] + robot.initial_z, robot.body_rpy[1]))
         done = env._isDone()
-        # the clipped state is finite but where NaN, and its float32 sum cannot overflow:
-        # the sum is NaN exactly where np.isfinite(state).all() is False
-        if math.isnan(np.add.reduce(state)):
+        # the clipped state is finite but where NaN, and the sum of its numbers in [-5, 5]
+        # cannot overflow: the sum is NaN exactly where np.isfinite(state).all() is False
+        if math.isnan(sum(values)):
             print("~INF~", state)
             done = True
         potential_old = env.potential
