@@ -160,12 +160,13 @@ def numpy_mean(x: np.ndarray) -> Any:
 
 def mean_xy(positions: list[Any]) -> tuple[np.float64, np.float64]:
     """The mean x and the mean y of 3-D positions, each ``ndarray.mean`` of the x (or y)
-    column as numpy computes it: the pairwise ``add.reduce`` of each row of a ``(2, n)``
-    array (a reduction along the contiguous axis runs the same pairwise sum over the same
-    n numbers as over a strided column), divided by the count in float64."""
+    column as numpy computes it: the pairwise ``add.reduce`` of the same numbers in the
+    same order (contiguous here, every third element of the flattened array in the
+    reference: the pairwise sum depends on the count, not the stride), divided by the
+    count in float64."""
     xs, ys, _ = zip(*positions, strict=True)
     n = len(xs)
-    sx, sy = np.add.reduce(np.array(xs + ys).reshape(2, n), axis=1).tolist()
+    sx, sy = float(np.add.reduce(np.array(xs))), float(np.add.reduce(np.array(ys)))
     return np.float64(sx / n), np.float64(sy / n)
 
 
