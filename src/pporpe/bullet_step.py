@@ -320,11 +320,11 @@ class BatchedWalkerStep:
 
 
 class HalfCheetahBatchedEnv(BatchedWalkerStep, HalfCheetahBulletEnv):
-    """``HalfCheetahBulletEnv-v0`` with the batched step: the same numbers, about 2x faster."""
+    """``HalfCheetahBulletEnv-v0`` with the batched step: the same numbers, about 1.8x as fast."""
 
 
 class AntBatchedEnv(BatchedWalkerStep, AntBulletEnv):
-    """``AntBulletEnv-v0`` with the batched step: the same numbers, about 2x faster."""
+    """``AntBulletEnv-v0`` with the batched step: the same numbers, about 1.8x as fast."""
 
 
 class BatchedPendulumStep:
