@@ -15,9 +15,11 @@ from pybullet_envs_gymnasium.gym_locomotion_envs import AntBulletEnv, HalfCheeta
 
 from pporpe.batch import BatchConfig
 from pporpe.bullet_step import (
+    _AT_LIMIT,
     AntBatchedEnv,
     HalfCheetahBatchedEnv,
     InvertedPendulumBatchedEnv,
+    mean_xy,
     numpy_mean,
     side_by_side,
 )
@@ -93,6 +95,50 @@ def test_numpy_mean_is_numpys_mean(values: list[float], dtype: Any, stride: int)
     got, want = numpy_mean(x), x.mean()
     assert type(got) is type(want)
     assert got.tobytes() == want.tobytes()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-1e6, 1e6, allow_nan=False)] * 3), min_size=1, max_size=70))
+def test_mean_xy_is_the_reference_mean(positions: list[tuple[float, float, float]]) -> None:
+    """The parts' mean x and mean y are the reference's: ``ndarray.mean`` of every third
+    element of the flattened ``(parts, 3)`` array, from 0 and from 1, bit for bit."""
+    flat = np.array(positions).flatten()
+    for got, want in zip(mean_xy(positions), (flat[0::3].mean(), flat[1::3].mean()), strict=True):
+        assert type(got) is type(want)
+        assert got.tobytes() == want.tobytes()
+
+
+def test_the_joints_at_limit_threshold_is_numpys() -> None:
+    """``abs(x) > _AT_LIMIT`` on a float32 number as a Python float is numpy's
+    ``np.abs(x) > 0.99`` on the float32 array, at the float32 neighbours of 0.99 too."""
+    t = np.float32(0.99)
+    edges = [np.nextafter(t, np.float32(2)), t, np.nextafter(t, np.float32(0)), 0.99]
+    rng = np.random.default_rng(0)
+    x = np.array([*edges, *(-e for e in edges), np.nan, np.inf, -np.inf], dtype=np.float32)
+    x = np.concatenate([x, rng.uniform(-1.5, 1.5, 10_000).astype(np.float32)])
+    want = np.abs(x) > 0.99
+    got = np.array([abs(v) > _AT_LIMIT for v in x.tolist()])
+    assert (got == want).all()
+
+
+def test_a_static_base_is_read_once_and_never_moves() -> None:
+    """The floor (a base without mass) is read at reset, not each step: PyBullet never
+    moves it, and the robot's own base (the Ant's torso, with mass) is read each step."""
+    import pybullet
+
+    for task in ("halfcheetah", "ant"):
+        env = make_env(task, seed=0)
+        env.reset(seed=0)
+        layout = env.unwrapped._layout  # type: ignore[attr-defined]
+        static = [(body, position) for _, body, position in layout.bases if position is not None]
+        assert [body for body, _ in static] == layout.grounds
+        assert all(position is None for _, body, position in layout.bases if body == layout.body)
+        for _ in range(300):
+            env.step(env.action_space.sample())
+        for body, position in static:
+            now = pybullet.getBasePositionAndOrientation(body, physicsClientId=layout.client)
+            assert now[0] == position
+        env.close()
 
 
 def test_numpy_mean_hand_worked() -> None:
