@@ -348,6 +348,26 @@ def plot(runs: list[dict[str, Any]], task: str, out: Path) -> None:
     plt.close(fig)
 
 
+def provenance(root: Path) -> dict[str, Any]:
+    """What produced the result files: CleanRL's commit, versions and an example command,
+    SB3's version, and the commands that make each kind of file."""
+    found: dict[str, Any] = {}
+    for path in sorted(root.glob("*/*/seed*.json")):
+        data = json.loads(path.read_text())
+        for key in ("cleanrl_commit", "cleanrl_versions", "cleanrl_command", "sb3_version"):
+            if key in data:
+                found.setdefault(key, data[key])
+    found["commands"] = {
+        "cleanrl": "python benchmarks/cleanrl.py cleanrl --checkout CLEANRL --python "
+                   "CLEANRL/.venv/bin/python --task TASK --seeds 1 2 3 4 5",
+        "pporpe": "pporpe reproduce experiments/batch-mujoco.toml --out DIR; "
+                  "python benchmarks/cleanrl.py pporpe --task TASK --study DIR",
+        "sb3": "python benchmarks/cleanrl.py sb3 --task TASK --seeds 1 2 3",
+        "summary": "python benchmarks/cleanrl.py summarize",
+    }  # fmt: skip
+    return found
+
+
 def summarize(args: argparse.Namespace) -> int:
     from _common import write_json
 
@@ -357,7 +377,7 @@ def summarize(args: argparse.Namespace) -> int:
         plot(runs, task, args.root / f"curves_{task}.png")
     slim = [{k: r[k] for k in ("implementation", "task", "seed", "last100_mean", "steps_per_s")}
             for r in runs]  # fmt: skip
-    write_json(args.root / "summary.json", {"runs": slim, "tasks": rows})
+    write_json(args.root / "summary.json", {**provenance(args.root), "runs": slim, "tasks": rows})
     lines = summary_lines(rows)
     (args.root / "summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -634,6 +634,67 @@ def vs_sb3_page(root: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+CLEANRL_PUBLISHED = {"HalfCheetah-v4": "1442.64 ± 46.03", "Hopper-v4": "2382.86 ± 271.74",
+                     "Walker2d-v4": "2287.95 ± 571.78"}  # fmt: skip
+"""CleanRL's published last-100 means of ``ppo_continuous_action.py`` (v4, 1M steps, 3
+seeds; vwxyzjn/cleanrl ``docs/benchmark/ppo_continuous_action.md``): context, not yardstick."""
+
+
+def ci_text(ci: dict[str, float]) -> str:
+    return f"{ci['value']:.0f} [{ci['low']:.0f}, {ci['high']:.0f}]"
+
+
+def p_text(p: dict[str, float] | None) -> str:
+    return "-" if p is None else f"{p['value']:.2f} [{p['low']:.2f}, {p['high']:.2f}]"
+
+
+def cleanrl_rows(data: dict[str, Any]) -> list[Row]:
+    """Per task of benchmarks/results/cleanrl/summary.json: seeds, the last-100 means with
+    their CIs, P(pporpe > CleanRL), SB3's mean and P(pporpe > SB3) where it ran, steps/s."""
+    impls = ("pporpe", "cleanrl", "sb3")
+    rows = []
+    for r in data["tasks"]:
+        rows.append([
+            r["task"], " / ".join(str(r["seeds"].get(i, 0)) for i in impls),
+            ci_text(r["pporpe"]), ci_text(r["cleanrl"]), p_text(r["p_pporpe_better"]),
+            ci_text(r["sb3"]) if "sb3" in r else "-", p_text(r.get("p_pporpe_better_sb3")),
+            " / ".join(f"{r[f'{i}_steps_per_s']:.0f}" if f"{i}_steps_per_s" in r else "-"
+                       for i in impls),
+            CLEANRL_PUBLISHED.get(r["task"], "-"),
+        ])  # fmt: skip
+    return rows
+
+
+def vs_cleanrl_page(root: Path) -> str:
+    """pporpe's batch PPO beside CleanRL's script (and SB3's PPO) seed by seed, from
+    benchmarks/results/cleanrl/summary.json, or a page that says it has not run yet."""
+    path = "benchmarks/results/cleanrl/summary.json"
+    lines = [
+        "# pporpe's PPO beside CleanRL's", "", banner(path), "",
+        "Is pporpe's batch PPO the field's PPO? The PPO runs of [the batch study](batch-mujoco.md) "
+        "(`experiments/batch-mujoco.toml`, CleanRL's settings) beside CleanRL's "
+        "`ppo_continuous_action.py` run unmodified from its own checkout and environment "
+        "(gymnasium 0.29.1, mujoco 2.3.3), and Stable-Baselines3's PPO with the same settings, "
+        "by `benchmarks/cleanrl.py` (its docstring has the commands). The metric is CleanRL's: "
+        "the mean return of the last 100 training episodes of a 1M-step run; 95% CIs by "
+        "bootstrap over seeds; P(pporpe > rival) whose CI contains 0.5 means the two cannot be "
+        "told apart at these seeds. CleanRL's own published means (3 seeds) are context: "
+        "HalfCheetah's outcomes are bimodal across seeds.", "",
+    ]  # fmt: skip
+    if not (root / path).exists():
+        return "\n".join([*lines, f"Not run yet: `{path}` does not exist.", ""])
+    data = read_json(root, path)
+    head = ["task", "seeds (pporpe / CleanRL / SB3)", "pporpe", "CleanRL",
+            "P(pporpe > CleanRL)", "SB3", "P(pporpe > SB3)",
+            "steps/s (pporpe / CleanRL / SB3)", "CleanRL published"]  # fmt: skip
+    figures = [f"![{t}](../../benchmarks/results/cleanrl/curves_{t}.png)"
+               for t in sorted({r["task"] for r in data["runs"]})]  # fmt: skip
+    lines += [machine_line(data["machine"], data["command"]), "",
+              *table(head, cleanrl_rows(data), ["---", "---", *["---:"] * 7]), "",
+              *figures]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 SHADOW_SCALARS = {
     "delta": "TD error delta",
     "adv": "advantage A",
@@ -825,6 +886,7 @@ PAGES: dict[str, Callable[[Path], str]] = {
     "docs/results/ablation.md": ablation_page,
     "docs/results/throughput.md": throughput_page,
     "docs/results/vs-sb3.md": vs_sb3_page,
+    "docs/results/vs-cleanrl.md": vs_cleanrl_page,
     "docs/results/engines.md": engines_page,
     "README.md": with_readme_results,
     "docs/run-folders.md": with_run_folder_columns,

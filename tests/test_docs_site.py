@@ -4,6 +4,7 @@ what docs/generate.py writes from the committed results, and the script finds a 
 from __future__ import annotations
 
 import importlib.util
+import json
 import shutil
 from pathlib import Path
 from types import ModuleType
@@ -115,3 +116,34 @@ def test_markdown_tables_are_read_row_by_row() -> None:
     with pytest.raises(ValueError, match="no table with a 'd' column"):
         gen.find_table(text, "d", "x")
     assert gen.table(["h"], [["v"]], ["---:"]) == ["| h |", "| ---: |", "| v |"]
+
+
+def test_the_cleanrl_page_shows_each_task_side_by_side(tmp_path: Path) -> None:
+    """From benchmarks/cleanrl.py's summary.json: a row per task with the seeds, both
+    last-100 means, P(pporpe > CleanRL), SB3's where it ran and "-" where not, and
+    CleanRL's published mean; "not run yet" without the file."""
+    gen = _generate()
+    assert "Not run yet" in gen.vs_cleanrl_page(tmp_path)
+    ci = {"value": 2400.0, "low": 2200.0, "high": 2600.0}
+    p = {"value": 0.56, "low": 0.3, "high": 0.8}
+    tasks = [
+        {"task": "Hopper-v4", "seeds": {"pporpe": 10, "cleanrl": 5, "sb3": 3}, "pporpe": ci,
+         "cleanrl": ci, "sb3": ci, "p_pporpe_better": p, "p_pporpe_better_sb3": p,
+         "pporpe_steps_per_s": 1100.0, "cleanrl_steps_per_s": 700.0, "sb3_steps_per_s": 900.0},
+        {"task": "HalfCheetah-v4", "seeds": {"pporpe": 10, "cleanrl": 5}, "pporpe": ci,
+         "cleanrl": ci, "p_pporpe_better": p, "pporpe_steps_per_s": 1100.0,
+         "cleanrl_steps_per_s": 700.0},
+    ]  # fmt: skip
+    runs = [{"task": t["task"]} for t in tasks]
+    summary = {"command": "python benchmarks/cleanrl.py summarize", "runs": runs, "tasks": tasks,
+               "machine": {"cpu": "a CPU", "cores": 2, "torch": "2.13.0", "torch_threads": 1,
+                           "time": "now"}}  # fmt: skip
+    path = tmp_path / "benchmarks" / "results" / "cleanrl" / "summary.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(summary))
+    page = gen.vs_cleanrl_page(tmp_path)
+    assert ("| Hopper-v4 | 10 / 5 / 3 | 2400 [2200, 2600] | 2400 [2200, 2600] | "
+            "0.56 [0.30, 0.80] | 2400 [2200, 2600] | 0.56 [0.30, 0.80] | 1100 / 700 / 900 | "
+            "2382.86 ± 271.74 |") in page  # fmt: skip
+    assert "| HalfCheetah-v4 | 10 / 5 / 0 |" in page and "| - | - | 1100 / 700 / - |" in page
+    assert "curves_HalfCheetah-v4.png" in page and "Not run yet" not in page
