@@ -3,14 +3,13 @@ aggregate over tasks against independent computations, and a tiny real grid end 
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from dataclasses import replace
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from docs_script import docs_generator
 from scipy import stats as sps
 
 from pporpe.experiments.aggregate import aggregate, normalised, pooled_improvement, task_ranges
@@ -198,12 +197,6 @@ steps = 640
 """
 
 
-def _generate() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("docs_generate", ROOT / "docs" / "generate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
@@ -239,7 +232,7 @@ def test_a_tiny_batch_grid_reports_by_steps_and_over_tasks(tiny_grid: Path) -> N
 
 
 def test_the_docs_page_and_readme_rows_of_the_batch_grid(tiny_grid: Path) -> None:
-    gen = _generate()
+    gen = docs_generator()
     stub = gen.batch_mujoco_page(tiny_grid / "absent")
     assert "Not run yet" in stub
     page = gen.batch_mujoco_page(tiny_grid)

@@ -3,13 +3,12 @@ what docs/generate.py writes from the committed results, and the script finds a 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
-from types import ModuleType
 
 import pytest
+from docs_script import docs_generator
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [
@@ -34,24 +33,18 @@ SOURCES = [
 ]
 
 
-def _generate() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("docs_generate", ROOT / "docs" / "generate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_generated_pages_are_what_the_script_writes_now() -> None:
     """A result committed without ``python docs/generate.py``, or a generated page edited
     by hand, fails here (and ``make docs``)."""
-    assert _generate().stale() == []
+    assert docs_generator().stale() == []
 
 
 def test_the_script_writes_every_page_and_check_names_a_stale_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    gen = _generate()
+    gen = docs_generator()
     for rel in SOURCES:
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / rel, tmp_path / rel)
@@ -86,7 +79,7 @@ def test_the_readme_table_is_the_reports_final_score_claims() -> None:
     P(PPO-RPE > PPO-RB) of the final score for that task, and summary.csv's means: the
     grid with Table I on the four tasks, then the one with the test bed's settings on the
     two pendulum tasks (the batch grid's rows, once committed: tests/test_batch_report.py)."""
-    gen = _generate()
+    gen = docs_generator()
     readme = (ROOT / "README.md").read_text()
     block = readme[readme.index(gen.README_START) : readme.index(gen.README_END)]
     (rows,) = gen.md_tables(block)
@@ -109,7 +102,7 @@ def test_the_readme_table_is_the_reports_final_score_claims() -> None:
 
 
 def test_markdown_tables_are_read_row_by_row() -> None:
-    gen = _generate()
+    gen = docs_generator()
     text = "intro\n\n| a | b |\n| --- | :---: |\n| 1 | 2 |\n\ntext\n| c |\n| --- |\n| 3 |\n"
     assert gen.md_tables(text) == [[["a", "b"], ["1", "2"]], [["c"], ["3"]]]
     assert gen.find_table(text, "c", "x") == [["c"], ["3"]]
@@ -122,7 +115,7 @@ def test_the_cleanrl_page_shows_each_task_side_by_side(tmp_path: Path) -> None:
     """From benchmarks/cleanrl.py's summary.json: a row per task with the seeds, both
     last-100 means, P(pporpe > CleanRL), SB3's where it ran and "-" where not, and
     CleanRL's published mean; "not run yet" without the file."""
-    gen = _generate()
+    gen = docs_generator()
     assert "Not run yet" in gen.vs_cleanrl_page(tmp_path)
     ci = {"value": 2400.0, "low": 2200.0, "high": 2600.0}
     p = {"value": 0.56, "low": 0.3, "high": 0.8}

@@ -12,7 +12,7 @@ from .batch_summary import BatchStatistics, Comparison
 from .figures import METHOD_LABELS
 from .results import QUARTERS, Cell, tasks_of
 from .stats import N_RESAMPLES, Estimate
-from .tables import quarter_markdown
+from .tables import quarter_markdown, report_head
 from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS
 
 __all__ = [
@@ -188,10 +188,7 @@ def batch_report_markdown(
 ) -> str:
     """REPORT.md of a batch grid: what ran, the aggregate over tasks, the per-task tables
     and verdicts, the quarters table and the figures (``notes.md`` of the folder on top)."""
-    notes = root / "notes.md"
-    parts = [f"# Report: grid {grid.get('name', root.name)!r} (batch PPO)\n"]
-    if notes.exists():
-        parts.append(notes.read_text().strip() + "\n")
+    parts = report_head(root, grid, " (batch PPO)")
     parts += [
         "## What ran\n",
         "\n".join(_what_ran(root, grid, cells)),

@@ -46,7 +46,7 @@ from .results import (
 )
 from .stats import mean_ci
 from .summary import Statistics, improvement_rows, statistics
-from .tables import summary_csv, summary_markdown
+from .tables import report_head, summary_csv, summary_markdown
 from .verdicts import claims_markdown
 
 __all__ = [
@@ -93,10 +93,7 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     and the folder's hand-written ``notes.md`` (if any) at the top."""
     stats = statistics(cells) if stats is None else stats
     grid = json.loads((root / "grid.json").read_text())
-    notes = root / "notes.md"
-    parts = [f"# Report: grid {grid.get('name', root.name)!r}\n"]
-    if notes.exists():
-        parts.append(notes.read_text().strip() + "\n")
+    parts = report_head(root, grid)
     parts += [
         "## What ran\n",
         "\n".join(_budget_lines(grid, cells)) + "\n",

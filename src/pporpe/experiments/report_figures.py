@@ -83,15 +83,26 @@ def curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth:
     axes = fig.subplots(1, len(envs), squeeze=False)
     for ax, env in zip(axes[0], envs, strict=True):
         _draw_curves(ax, [c for c in cells if c.env == env], field, smooth)
-        ax.set_title(env)
-        ax.set_xlabel("episode")
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
-        if ax.lines:
-            ax.legend(fontsize=8)
-        else:
-            ax.text(0.5, 0.5, "no finished runs yet", ha="center", va="center",
-                    transform=ax.transAxes)  # fmt: skip
+        _label_panel(ax, env, "episode", ylabel)
+    return _titled(fig, title, smooth)
+
+
+def _label_panel(ax: Axes, env: str, xlabel: str, ylabel: str) -> None:
+    """A task's panel titled and labelled, with a legend, or a note that no run of the
+    task has finished."""
+    ax.set_title(env)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    if ax.lines:
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no finished runs yet", ha="center", va="center",
+                transform=ax.transAxes)  # fmt: skip
+
+
+def _titled(fig: Figure, title: str, smooth: int) -> Figure:
+    """The figure with its title (what is drawn, the smoothing) and a tight layout."""
     suffix = f"; moving average over {smooth} episodes" if smooth > 1 else ""
     fig.suptitle(f"{title} (mean over seeds, shaded: 95% CI{suffix})")
     fig.tight_layout()
@@ -142,19 +153,8 @@ def step_curve_figure(cells: list[BatchCell], smooth: int) -> Figure:
     axes = fig.subplots(1, max(len(envs), 1), squeeze=False)
     for ax, env in zip(axes[0], envs, strict=False):
         _draw_step_curves(ax, [c for c in cells if c.env == env], smooth)
-        ax.set_title(env)
-        ax.set_xlabel("environment steps")
-        ax.set_ylabel("training episode return")
-        ax.grid(alpha=0.3)
-        if ax.lines:
-            ax.legend(fontsize=8)
-        else:
-            ax.text(0.5, 0.5, "no finished runs yet", ha="center", va="center",
-                    transform=ax.transAxes)  # fmt: skip
-    suffix = f"; moving average over {smooth} episodes" if smooth > 1 else ""
-    fig.suptitle(f"Learning curves over steps (mean over seeds, shaded: 95% CI{suffix})")
-    fig.tight_layout()
-    return fig
+        _label_panel(ax, env, "environment steps", "training episode return")
+    return _titled(fig, "Learning curves over steps", smooth)
 
 
 def summary_figure(cells: list[Cell]) -> Figure:

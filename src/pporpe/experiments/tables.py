@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from pathlib import Path
 from typing import Any
 
 from .figures import METHOD_LABELS
@@ -25,6 +26,16 @@ __all__ = [
     "summary_csv",
     "summary_markdown",
 ]
+
+
+def report_head(root: Path, grid: dict[str, Any], kind: str = "") -> list[str]:
+    """The first parts of a REPORT.md: its title (the grid's name, ``kind`` after it) and the
+    folder's hand-written ``notes.md`` if it has one."""
+    notes = root / "notes.md"
+    parts = [f"# Report: grid {grid.get('name', root.name)!r}{kind}\n"]
+    if notes.exists():
+        parts.append(notes.read_text().strip() + "\n")
+    return parts
 
 
 def fmt(x: float) -> str:
