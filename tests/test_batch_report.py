@@ -89,7 +89,7 @@ SCORES = {
 def test_pooled_probability_is_the_mean_of_the_per_task_mann_whitney() -> None:
     cells = _cells(SCORES)
     got = pooled_improvement(cells, "score", "ppo")
-    assert got is not None and got.tasks == 3 and got.n == (6, 6) and got.same_seeds
+    assert got is not None and got.tasks == 3 and got.n == (6, 6) and got.left_out == 0
     per_task = [
         sps.mannwhitneyu(SCORES[(t, "rpe")], SCORES[(t, "ppo")]).statistic / 36 for t in "abc"
     ]
@@ -152,14 +152,16 @@ def test_verdicts_of_the_pooled_and_per_task_comparisons_at_their_edges() -> Non
     assert replace(base, p=Estimate(0.5, 0.37, 0.63)).verdict.startswith("equivalent")
     assert replace(base, p=Estimate(0.5, 0.36, 0.63)).verdict.startswith("cannot tell")
     assert replace(ahead, n=(4, 6)).verdict.startswith("too few seeds (n = 4")
-    assert replace(ahead, same_seeds=False).verdict == "seed sets differ"
-    missing = Comparison("score", "a", "rpe", "ppo", (0, 6), True, None, None)
+    assert replace(ahead, left_out=2).verdict.endswith(
+        ", on the 6 seeds both finished (2 other runs left out)"
+    )
+    missing = Comparison("score", "a", "rpe", "ppo", (0, 6), 0, None, None)
     assert missing.verdict == "no data"
-    # Seeds missing on one task of the rival: the pooled comparison says the sets differ.
+    # A seed missing on one task of the rival: that task compares the 5 seeds both have.
     partial = [c if (c.env, c.method) != ("b", "ppo") else replace(c, runs=c.runs[1:])
                for c in cells]  # fmt: skip
     got = pooled_improvement(partial, "score", "ppo")
-    assert got is not None and got.n == (6, 5) and not got.same_seeds
+    assert got is not None and got.n == (5, 5) and got.left_out == 1
 
 
 def test_quarter_rows_average_the_seeds() -> None:

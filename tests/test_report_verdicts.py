@@ -62,12 +62,15 @@ def test_a_ci_that_touches_a_bound_is_not_past_it() -> None:
     assert verdict(0.5 + 1e-6, 0.90, TEN).startswith("supported")
 
 
-def test_no_verdict_from_too_few_or_different_seeds() -> None:
+def test_no_verdict_from_too_few_seeds_and_seeds_left_out_are_said() -> None:
     assert MIN_SEEDS == 5
     assert verdict(1.0, 1.0, (1, 1)) == "too few seeds (n = 1; a verdict needs 5)"
     assert verdict(0.9, 1.0, (10, 4)).startswith("too few seeds (n = 4;")
     assert verdict(0.9, 1.0, (5, 5)) == "supported (PPO-RPE ahead)"
-    assert verdict(0.9, 1.0, TEN, same_seeds=False) == "seed sets differ"
+    assert verdict(0.9, 1.0, TEN, left_out=3) == (
+        "supported (PPO-RPE ahead), on the 10 seeds both finished (3 other runs left out)"
+    )
+    assert verdict(0.4, 0.6, TEN, left_out=1).startswith("equivalent (")
 
 
 # --- verdicts on constructed data --------------------------------------------------------
@@ -187,15 +190,20 @@ def test_partial_grid_one_seed_per_method_has_no_verdict(tmp_path: Path) -> None
     assert "| 20.0 [20.0, 20.0] |" in rows[0] and "| 10.0 [10.0, 10.0] |" in rows[1]
 
 
-def test_partial_grid_with_different_seed_sets_has_no_verdict(tmp_path: Path) -> None:
+def test_a_partial_grid_compares_the_seeds_both_methods_finished(tmp_path: Path) -> None:
     rpe = {s: 100.0 + s for s in range(6)}  # seeds 0-5
     ppo = {s: float(s) for s in (0, 1, 2, 3, 4, 7)}  # seeds 0-4 and 7
     write_grid(tmp_path, {"ppo": ppo, "rpe": rpe})
     (row,) = claim_rows(tmp_path)
-    assert row.endswith("| seed sets differ |")
     (imp,) = improvement_rows(load_results(tmp_path))
-    assert imp["score_seeds"] == ((0, 1, 2, 3, 4, 5), (0, 1, 2, 3, 4, 7))
-    # The same seeds: a verdict, P = 1 (every PPO-RPE score beats every PPO score).
+    assert imp["score_seeds"] == ((0, 1, 2, 3, 4), (0, 1, 2, 3, 4))
+    assert imp["score_n"] == (5, 5) and imp["score_left_out"] == 2  # rpe's 5, ppo's 7
+    # On seeds 0-4: P = 1, mean difference mean(100..104) - mean(0..4) = 100.
+    assert "| 1.00 [1.00, 1.00] | 100.0 [" in row
+    assert row.endswith(
+        "| supported (PPO-RPE ahead), on the 5 seeds both finished (2 other runs left out) |"
+    )
+    # The same seeds: the verdict alone, nothing left out.
     del ppo[7]
     ppo[5] = 5.0
     other = tmp_path / "same"

@@ -24,7 +24,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .batch_results import METRICS, BatchCell, batch_tasks
-from .stats import Estimate, average_probability_of_improvement_ci, stratified_iqm_ci
+from .stats import (
+    Estimate,
+    average_probability_of_improvement_ci,
+    common_seeds,
+    stratified_iqm_ci,
+)
 from .verdicts import verdict
 
 __all__ = [
@@ -63,15 +68,16 @@ class PooledImprovement:
     """Tasks where both methods have finished runs (those averaged)."""
     n: tuple[int, int]
     """The fewest seeds of ``method`` and of the rival on any of those tasks."""
-    same_seeds: bool
-    """Whether the two methods have the same seeds on every one of those tasks."""
+    left_out: int
+    """Seeds of either method left out over those tasks: each task compares the seeds both
+    have finished (:func:`.stats.common_seeds`)."""
     p: Estimate
     """The mean over tasks of P(method > rival), with its stratified bootstrap 95% CI."""
 
     @property
     def verdict(self) -> str:
         """:func:`.verdicts.verdict` of the CI."""
-        return verdict(self.p.low, self.p.high, self.n, self.same_seeds)
+        return verdict(self.p.low, self.p.high, self.n, self.left_out)
 
 
 @dataclass(frozen=True)
@@ -115,19 +121,18 @@ def pooled_improvement(
 ) -> PooledImprovement | None:
     """P(``of`` > ``rival``) of ``metric`` averaged over the tasks where both have finished
     runs (None where there is none)."""
-    pairs, seeds = [], []
+    pairs, left_out = [], 0
     for env in batch_tasks(cells):
         here = {c.method: c.values(metric) for c in cells if c.env == env}
-        x, y = here.get(of), here.get(rival)
+        x, y, dropped = common_seeds(here.get(of, {}), here.get(rival, {}))
         if x and y:
             pairs.append((list(x.values()), list(y.values())))
-            seeds.append((set(x), set(y)))
+            left_out += dropped
     if not pairs:
         return None
     n = (min(len(a) for a, _ in pairs), min(len(b) for _, b in pairs))
-    same = all(a == b for a, b in seeds)
     est = average_probability_of_improvement_ci(pairs)
-    return PooledImprovement(metric, of, rival, len(pairs), n, same, est)
+    return PooledImprovement(metric, of, rival, len(pairs), n, left_out, est)
 
 
 def aggregate(cells: list[BatchCell], of: str = "rpe") -> Aggregate:

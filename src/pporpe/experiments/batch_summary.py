@@ -19,7 +19,14 @@ from .aggregate import Aggregate, aggregate
 from .batch_results import METRICS, QUARTER_FIELDS, BatchCell, batch_tasks
 from .figures import METHOD_LABELS
 from .results import QUARTERS
-from .stats import Estimate, bootstrap_ci, iqm, mean_difference_ci, probability_of_improvement_ci
+from .stats import (
+    Estimate,
+    bootstrap_ci,
+    common_seeds,
+    iqm,
+    mean_difference_ci,
+    probability_of_improvement_ci,
+)
 from .summary import QuarterRow
 from .verdicts import verdict
 
@@ -69,9 +76,10 @@ class Comparison:
     method: str
     rival: str
     n: tuple[int, int]
-    """Seeds of ``method`` and of ``rival`` with a finite value."""
-    same_seeds: bool
-    """Whether they are the same seeds."""
+    """Seeds of ``method`` and of ``rival`` compared: those both have a finite value of."""
+    left_out: int
+    """Seeds of either left out because the other has no value there (a run unfinished or
+    failed; :func:`.stats.common_seeds`)."""
     p: Estimate | None
     """P(method > rival) with its bootstrap 95% CI (None without data)."""
     diff: Estimate | None
@@ -81,7 +89,7 @@ class Comparison:
     def verdict(self) -> str:
         """:func:`.verdicts.verdict` of the CI of ``p``."""
         low, high = (math.nan, math.nan) if self.p is None else (self.p.low, self.p.high)
-        return verdict(low, high, self.n, self.same_seeds)
+        return verdict(low, high, self.n, self.left_out)
 
 
 @dataclass(frozen=True)
@@ -114,15 +122,15 @@ def comparisons(cells: list[BatchCell], of: str = "rpe") -> list[Comparison]:
             here = {c.method: c.values(m.key) for c in cells if c.env == env}
             if of not in here:
                 continue
-            x = here[of]
-            for rival, y in here.items():
+            for rival, theirs in here.items():
                 if rival == of:
                     continue
+                x, y, left_out = common_seeds(here[of], theirs)
                 a, b = list(x.values()), list(y.values())
                 p = probability_of_improvement_ci(a, b) if a and b else None
                 diff = mean_difference_ci(a, b) if a and b else None
-                same = set(x) == set(y)
-                out.append(Comparison(m.key, env, of, rival, (len(a), len(b)), same, p, diff))
+                n = (len(a), len(b))
+                out.append(Comparison(m.key, env, of, rival, n, left_out, p, diff))
     return out
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +26,7 @@ __all__ = [
     "Estimate",
     "average_probability_of_improvement_ci",
     "bootstrap_ci",
+    "common_seeds",
     "iqm",
     "mean_ci",
     "mean_difference",
@@ -217,3 +218,15 @@ def stratified_iqm_ci(
         return Estimate(point, point, point)
     lo, hi = _bootstrap(tuple(samples), pooled_iqm, level, seed)
     return Estimate(point, lo, hi)
+
+
+def common_seeds(
+    x: Mapping[int, float], y: Mapping[int, float]
+) -> tuple[dict[int, float], dict[int, float], int]:
+    """``x`` and ``y`` (values by seed) restricted to the seeds both have, so that two
+    methods are compared on the same seeds while a grid runs or after a run failed, and how
+    many seeds of either were left out."""
+    both = set(x) & set(y)
+    a = {s: v for s, v in x.items() if s in both}
+    b = {s: v for s, v in y.items() if s in both}
+    return a, b, len(x) + len(y) - 2 * len(both)

@@ -21,6 +21,7 @@ from .results import (
 from .stats import (
     Estimate,
     bootstrap_ci,
+    common_seeds,
     iqm,
     mean_ci,
     mean_difference_ci,
@@ -155,14 +156,17 @@ def _per_seed(cell: Cell) -> dict[str, dict[int, float]]:
 
 
 def _compare(row: dict[str, Any], name: str, x: dict[int, float], y: dict[int, float]) -> None:
-    """``row``'s entries for one statistic: P(x > y) (``name_value|low|high``), the
-    difference of the means (``name_diff_*``), the numbers of seeds (``name_n``) and the
-    seed sets (``name_seeds``)."""
+    """``row``'s entries for one statistic on the seeds both methods finished
+    (:func:`.stats.common_seeds`): P(x > y) (``name_value|low|high``), the difference of
+    the means (``name_diff_*``), the numbers of seeds compared (``name_n``), the seeds
+    (``name_seeds``) and how many were left out (``name_left_out``)."""
+    x, y, left_out = common_seeds(x, y)
     a, b = list(x.values()), list(y.values())
     _put(row, name, probability_of_improvement_ci(a, b) if a and b else None)
     _put(row, f"{name}_diff", mean_difference_ci(a, b) if a and b else None)
     row[f"{name}_n"] = (len(a), len(b))
     row[f"{name}_seeds"] = (tuple(x), tuple(y))
+    row[f"{name}_left_out"] = left_out
 
 
 def improvement_rows(cells: list[Cell], of: str = "rpe") -> list[dict[str, Any]]:

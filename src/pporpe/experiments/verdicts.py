@@ -6,8 +6,8 @@ reads the 95% CI [low, high] of P(PPO-RPE > rival) (:func:`verdict`), in this or
 
 1. ``no data``: a method has no finite value;
 2. ``too few seeds (n = N)``: a method has fewer than :data:`MIN_SEEDS` seeds;
-3. ``seed sets differ``: the two methods were not compared on the same seeds (a partial
-   grid: some runs unfinished);
+3. (the two methods are compared on the seeds both finished, :func:`.stats.common_seeds`: in a
+   grid still running, or one with a failed run, the verdict says how many)
 4. ``supported``: the CI lies above 0.5 (low > 0.5); ``contradicted``: below (high < 0.5);
 5. ``equivalent``: the CI lies strictly inside :data:`EQUIVALENCE_BOUNDS` (0.36, 0.64);
 6. otherwise ``cannot tell at N seeds``.
@@ -71,26 +71,30 @@ def _past(x: float, bound: float) -> bool:
     return x - bound > EDGE_TOLERANCE
 
 
-def verdict(low: float, high: float, n: tuple[int, int], same_seeds: bool = True) -> str:
+def verdict(low: float, high: float, n: tuple[int, int], left_out: int = 0) -> str:
     """What a probability-of-improvement CI ``[low, high]`` says (module docstring): ``n``
-    holds the two methods' numbers of seeds, ``same_seeds`` whether they are the same seeds."""
+    holds the two methods' numbers of seeds compared, ``left_out`` the seeds of either left
+    out because the other method has not (yet) finished them (:func:`.stats.common_seeds`)."""
     if min(n) == 0 or math.isnan(low) or math.isnan(high):
         return "no data"
     if min(n) < MIN_SEEDS:
         return f"too few seeds (n = {min(n)}; a verdict needs {MIN_SEEDS})"
-    if not same_seeds:
-        return "seed sets differ"
     lo_bound, hi_bound = EQUIVALENCE_BOUNDS
     inside = _past(low, lo_bound) and _past(hi_bound, high)
     small = ", by less than a medium effect" if inside else ""
-    if _past(low, 0.5):
-        return f"supported (PPO-RPE ahead{small})"
-    if _past(0.5, high):
-        return f"contradicted (PPO-RPE behind{small})"
     bounds = f"{lo_bound} or {hi_bound}"
-    if inside:
-        return f"equivalent (the CI stays clear of {bounds}: no medium difference)"
-    return f"cannot tell at {min(n)} seeds (the CI contains 0.5 and reaches {bounds})"
+    if _past(low, 0.5):
+        said = f"supported (PPO-RPE ahead{small})"
+    elif _past(0.5, high):
+        said = f"contradicted (PPO-RPE behind{small})"
+    elif inside:
+        said = f"equivalent (the CI stays clear of {bounds}: no medium difference)"
+    else:
+        said = f"cannot tell at {min(n)} seeds (the CI contains 0.5 and reaches {bounds})"
+    if left_out:
+        runs = "run" if left_out == 1 else "runs"
+        said += f", on the {min(n)} seeds both finished ({left_out} other {runs} left out)"
+    return said
 
 
 def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
@@ -104,9 +108,8 @@ def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
         for r in rows:
             if tasks is not None and r["task"] not in tasks:
                 continue
-            seeds = r[f"{stat}_seeds"]
             said = verdict(r[f"{stat}_low"], r[f"{stat}_high"], r[f"{stat}_n"],
-                           set(seeds[0]) == set(seeds[1]))  # fmt: skip
+                           r[f"{stat}_left_out"])  # fmt: skip
             lines.append(
                 f"| {claim.split(':')[0]} | {r['task']} | "
                 f"{METHOD_LABELS.get(r['rival'], r['rival'])} | {fmt_ci(r, stat, 2)} | "
@@ -130,7 +133,8 @@ def _legend() -> str:
         f"{lo_bound}-{hi_bound} (Vargha and Delaney's bounds of a medium effect: no difference "
         "of medium size or more), otherwise **cannot tell**. A CI that touches 0.5 or a bound "
         "is not past it. No verdict where a method has fewer than "
-        f"{MIN_SEEDS} seeds or the two methods' seeds differ. Mean difference: of the claim's "
-        "statistic (score, first-50 return, regularisation amount), with a bootstrap CI "
-        "resampling both methods' seeds.\n"
+        f"{MIN_SEEDS} seeds. The two methods are compared on the seeds both finished (a grid "
+        "still running, a failed run: the verdict says how many were left out). Mean "
+        "difference: of the claim's statistic (score, first-50 return, regularisation "
+        "amount), with a bootstrap CI resampling both methods' seeds.\n"
     )
