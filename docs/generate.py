@@ -665,6 +665,30 @@ def cleanrl_rows(data: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def cleanrl_throughput_lines(root: Path) -> list[str]:
+    """The side-by-side throughput of each task measured (``benchmarks/cleanrl.py
+    throughput``: CleanRL's script and ``pporpe train --learner batch``, A B A B)."""
+    files = sorted((root / "benchmarks/results/cleanrl").glob("throughput_*.json"))
+    if not files:
+        return []
+    rows = []
+    for f in files:
+        d = json.loads(f.read_text())
+        rows.append([d["task"], f"{d['steps']:,}", str(len(d["rounds"]["pporpe"])),
+                     f"{d['median']['pporpe']:.0f}", f"{d['median']['cleanrl']:.0f}",
+                     f"{d['pporpe_over_cleanrl']:.2f}x"])  # fmt: skip
+    d = json.loads(files[0].read_text())
+    head = ["task", "steps per round", "rounds", "pporpe steps/s", "CleanRL steps/s",
+            "pporpe / CleanRL"]  # fmt: skip
+    return [
+        "Throughput, one run per process and one thread each (CleanRL with OMP_NUM_THREADS=1, "
+        "pporpe's run loop sets torch to 1), side by side in the same command (medians of the "
+        "rounds, each implementation's own clock):", "",
+        machine_line(d["machine"], d["command"].replace(d["task"], "TASK")), "",
+        *table(head, rows, ["---", *["---:"] * 5]), "",
+    ]  # fmt: skip
+
+
 def vs_cleanrl_page(root: Path) -> str:
     """pporpe's batch PPO beside CleanRL's script (and SB3's PPO) seed by seed, from
     benchmarks/results/cleanrl/summary.json, or a page that says it has not run yet."""
@@ -681,8 +705,9 @@ def vs_cleanrl_page(root: Path) -> str:
         "told apart at these seeds. CleanRL's own published means (3 seeds) are context: "
         "HalfCheetah's outcomes are bimodal across seeds.", "",
     ]  # fmt: skip
+    lines += cleanrl_throughput_lines(root)
     if not (root / path).exists():
-        return "\n".join([*lines, f"Not run yet: `{path}` does not exist.", ""])
+        return "\n".join([*lines, f"Learning: not run yet (`{path}` does not exist).", ""])
     data = read_json(root, path)
     head = ["task", "seeds (pporpe / CleanRL / SB3)", "pporpe", "CleanRL",
             "P(pporpe > CleanRL)", "SB3", "P(pporpe > SB3)",

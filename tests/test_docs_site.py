@@ -116,7 +116,7 @@ def test_the_cleanrl_page_shows_each_task_side_by_side(tmp_path: Path) -> None:
     last-100 means, P(pporpe > CleanRL), SB3's where it ran and "-" where not, and
     CleanRL's published mean; "not run yet" without the file."""
     gen = docs_generator()
-    assert "Not run yet" in gen.vs_cleanrl_page(tmp_path)
+    assert "Learning: not run yet" in gen.vs_cleanrl_page(tmp_path)
     ci = {"value": 2400.0, "low": 2200.0, "high": 2600.0}
     p = {"value": 0.56, "low": 0.3, "high": 0.8}
     tasks = [
@@ -139,4 +139,4 @@ def test_the_cleanrl_page_shows_each_task_side_by_side(tmp_path: Path) -> None:
             "0.56 [0.30, 0.80] | 2400 [2200, 2600] | 0.56 [0.30, 0.80] | 1100 / 700 / 900 | "
             "2382.86 ± 271.74 |") in page  # fmt: skip
     assert "| HalfCheetah-v4 | 10 / 5 / 0 |" in page and "| - | - | 1100 / 700 / - |" in page
-    assert "curves_HalfCheetah-v4.png" in page and "Not run yet" not in page
+    assert "curves_HalfCheetah-v4.png" in page and "not run yet" not in page
