@@ -221,12 +221,14 @@ def test_a_tiny_batch_grid_reports_by_steps_and_over_tasks(tiny_grid: Path) -> N
                  "P(PPO-RPE > rival), mean over tasks", "## Per task", "last 100 episodes",
                  "mean training return", "approx. KL Q4", "by quarter of steps",
                  "min-max over all the task's finished runs", "pporpe reproduce",
-                 "n_steps=64", "too few seeds (n = 2"):  # fmt: skip
+                 "n_steps=64", "too few seeds (n = 2",
+                 "![aggregate](fig_aggregate.png)"):  # fmt: skip
         assert part in report, part
     for verdict in ("| supported", "| contradicted", "| equivalent", "| cannot tell"):
         assert verdict not in report  # 2 seeds: no verdict
     for name in ("fig_learning.png", "fig_learning.pdf", "fig_summary.png", "runs.csv",
-                 "summary.csv", "summary.md"):  # fmt: skip
+                 "fig_aggregate.png", "fig_aggregate.pdf", "summary.csv",
+                 "summary.md"):  # fmt: skip
         assert (out / name).stat().st_size > 0
     runs = (out / "runs.csv").read_text().splitlines()
     assert runs[0].startswith("task,method,seed,episodes,steps,score,last100,mean_return")

@@ -10,8 +10,9 @@ For a grid whose runs are batch runs (:func:`.batch_results.is_batch_grid`), wri
   (:func:`.verdicts.verdict`), the surrogate diagnostics by quarter of steps, the figures;
 * ``summary.md`` (the tables), ``summary.csv`` (a row per task and method) and ``runs.csv``
   (a row per finished run: its three numbers);
-* ``fig_summary`` (test scores per seed) and ``fig_learning`` (training return over
-  environment steps, mean over seeds and 95% band), as PNG and PDF.
+* ``fig_summary`` (test scores per seed), ``fig_learning`` (training return over
+  environment steps, mean over seeds and 95% band) and ``fig_aggregate`` (the aggregate's
+  IQMs and pooled probabilities of improvement with their CIs), as PNG and PDF.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from ..io import atomic_savefig, atomic_write_text
 from .batch_results import load_batch
 from .batch_summary import batch_statistics, runs_csv, summary_csv
 from .batch_tables import batch_report_markdown, batch_summary_markdown
-from .report_figures import step_curve_figure, summary_figure
+from .report_figures import aggregate_figure, step_curve_figure, summary_figure
 
 __all__ = ["write_batch_report"]
 
@@ -43,6 +44,7 @@ def write_batch_report(out: str | Path, smooth: int = 10) -> list[Path]:
     figures = {
         "fig_summary": summary_figure(cells),
         "fig_learning": step_curve_figure(batch, smooth),
+        "fig_aggregate": aggregate_figure(stats.aggregate),
     }
     for name, fig in figures.items():
         for ext in ("png", "pdf"):

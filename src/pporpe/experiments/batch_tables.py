@@ -201,6 +201,8 @@ def batch_report_markdown(
         "## Where the surrogates act, by quarter of steps\n",
         "\n".join(quarter_markdown(list(stats.quarters), BATCH_QUARTER_LEGEND)),
         "## Figures\n",
+        "- Over the tasks: each method's IQM of the normalised values and P(PPO-RPE > rival) "
+        "pooled over the tasks, with their 95% CIs: ![aggregate](fig_aggregate.png)\n"
         "- Test scores per seed and their mean: ![summary](fig_summary.png)\n"
         "- Learning curves over environment steps (training return, mean over seeds, 95% "
         f"band; last-{LAST_EPISODES} and mean training return read off these runs): "

@@ -13,13 +13,16 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from scipy import stats
 
-from .batch_results import BatchCell, BatchRun, batch_tasks
+from .aggregate import Aggregate
+from .batch_results import METRICS, BatchCell, BatchRun, batch_tasks
 from .figures import METHOD_COLORS, METHOD_LABELS, METHOD_STYLES
 from .results import Cell, record_value, tasks_of
 from .stats import mean_ci
+from .verdicts import EQUIVALENCE_BOUNDS
 
 __all__ = [
     "STEP_POINTS",
+    "aggregate_figure",
     "band",
     "curve_figure",
     "moving_average",
@@ -177,5 +180,40 @@ def summary_figure(cells: list[Cell]) -> Figure:
         ax.set_ylabel("median test return")
         ax.grid(alpha=0.3, axis="y")
     fig.suptitle("Test score per seed (dots), mean and 95% CI over seeds (bars)")
+    fig.tight_layout()
+    return fig
+
+
+def aggregate_figure(agg: Aggregate) -> Figure:
+    """The aggregate over tasks as rliable draws it, one column per metric: each method's
+    IQM of the normalised values with its 95% CI (top), and P(PPO-RPE > rival) pooled over
+    tasks with its 95% CI against 0.5 and the bounds of a medium effect (bottom)."""
+    fig = Figure(figsize=(4.0 * len(METRICS), 4.6))
+    axes = fig.subplots(2, len(METRICS), squeeze=False)
+    for col, metric in enumerate(METRICS):
+        top, bottom = axes[0][col], axes[1][col]
+        iqms = [x for x in agg.iqms if x.metric == metric.key]
+        for y, x in enumerate(iqms):
+            color = METHOD_COLORS.get(x.method)
+            top.errorbar([x.iqm.value], [y], xerr=[[x.iqm.value - x.iqm.low],
+                         [x.iqm.high - x.iqm.value]], fmt="o", color=color, capsize=4)  # fmt: skip
+        top.set_yticks(range(len(iqms)), [METHOD_LABELS.get(x.method, x.method) for x in iqms])
+        top.set_title(metric.name)
+        top.set_xlabel("IQM of the normalised values")
+        pooled = [p for p in agg.improvements if p.metric == metric.key]
+        for y, p in enumerate(pooled):
+            err = [[p.p.value - p.p.low], [p.p.high - p.p.value]]
+            bottom.errorbar([p.p.value], [y], xerr=err, fmt="o", color="black", capsize=4)
+        rivals = [f"vs {METHOD_LABELS.get(p.rival, p.rival)}" for p in pooled]
+        bottom.set_yticks(range(len(pooled)), rivals)
+        bottom.axvline(0.5, color="grey", lw=1)
+        for bound in EQUIVALENCE_BOUNDS:
+            bottom.axvline(bound, color="grey", lw=0.8, ls=":")
+        bottom.set_xlim(0, 1)
+        bottom.set_xlabel("P(PPO-RPE > rival), mean over tasks")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3, axis="x")
+            ax.set_ylim(-0.7, max(len(iqms), len(pooled), 1) - 0.3)
+    fig.suptitle("Over the tasks (95% CIs, stratified bootstrap; dotted: a medium effect)")
     fig.tight_layout()
     return fig
