@@ -102,6 +102,14 @@ def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     of PPO-RPE over each rival (``stats``: already computed :func:`statistics` of
     ``cells``)."""
     stats = statistics(cells) if stats is None else stats
+    lines = [*_score_lines(stats), *_surrogate_lines(stats), *quarter_markdown(stats.quarters)]
+    if stats.improvements:
+        lines += _improvement_lines(stats)
+    return "\n".join(lines) + "\n"
+
+
+def _score_lines(stats: Statistics) -> list[str]:
+    """Scores, early learning and regularisation per task and method, and their legend."""
     lines = [
         "| task | method | seeds | mean score [95% CI] | IQM [95% CI] "
         f"| first-{EARLY_EPISODES} episodes mean return [95% CI] "
@@ -120,7 +128,12 @@ def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
         "rho_dagger), averaged over the run's training episodes) are means over seeds. "
         f"95% CIs: bootstrap over seeds (scipy BCa, {N_RESAMPLES:,} resamples).\n"
     )
-    lines += [
+    return lines
+
+
+def _surrogate_lines(stats: Statistics) -> list[str]:
+    """The share of updates past the threshold and abs(rho - 1) per task and method."""
+    lines = [
         "| task | method | updates past the threshold, % [95% CI] "
         "| mean abs(rho - 1) per update, % [95% CI] |",
         "| --- | --- | :---: | :---: |",
@@ -137,26 +150,28 @@ def summary_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
         "updates, then averaged over seeds. Where rho stays near 1 the three objectives give "
         "nearly the same gradient.\n"
     )
-    lines += quarter_markdown(stats.quarters)
-    poi = stats.improvements
-    if poi:
-        lines += [
-            "| task | P(PPO-RPE > rival) | score [95% CI] "
-            f"| first-{EARLY_EPISODES} return [95% CI] | regularisation [95% CI] |",
-            "| --- | --- | :---: | :---: | :---: |",
-        ]
-        for r in poi:
-            lines.append(
-                f"| {r['task']} | vs {METHOD_LABELS.get(r['rival'], r['rival'])} | "
-                f"{fmt_ci(r, 'score', 2)} | {fmt_ci(r, 'first50', 2)} | "
-                f"{fmt_ci(r, 'reg', 2)} |"
-            )
+    return lines
+
+
+def _improvement_lines(stats: Statistics) -> list[str]:
+    """P(PPO-RPE > rival) of each statistic per task and rival, and its legend."""
+    lines = [
+        "| task | P(PPO-RPE > rival) | score [95% CI] "
+        f"| first-{EARLY_EPISODES} return [95% CI] | regularisation [95% CI] |",
+        "| --- | --- | :---: | :---: | :---: |",
+    ]
+    for r in stats.improvements:
         lines.append(
-            "\nProbability of improvement (Agarwal et al. 2021): P(X > Y) + P(X = Y)/2 for a "
-            "random seed of PPO-RPE against a random seed of the rival; 0.5 means neither is "
-            "ahead. CIs: bootstrap resampling both methods' seeds.\n"
+            f"| {r['task']} | vs {METHOD_LABELS.get(r['rival'], r['rival'])} | "
+            f"{fmt_ci(r, 'score', 2)} | {fmt_ci(r, 'first50', 2)} | "
+            f"{fmt_ci(r, 'reg', 2)} |"
         )
-    return "\n".join(lines) + "\n"
+    lines.append(
+        "\nProbability of improvement (Agarwal et al. 2021): P(X > Y) + P(X = Y)/2 for a "
+        "random seed of PPO-RPE against a random seed of the rival; 0.5 means neither is "
+        "ahead. CIs: bootstrap resampling both methods' seeds.\n"
+    )
+    return lines
 
 
 def summary_csv(cells: list[Cell], stats: Statistics | None = None) -> str:
