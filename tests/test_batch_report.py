@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from docs_script import docs_generator
+from repo_scripts import docs_generator
 from scipy import stats as sps
 
 from pporpe.experiments.aggregate import aggregate, normalised, pooled_improvement, task_ranges

@@ -3,22 +3,16 @@ committed results folder; a run already there is kept, one that differs is refus
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from repo_scripts import load_script
 
 
 def collect_script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("collect", ROOT / "experiments" / "collect.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("experiments/collect.py", "collect")
 
 
 def run_folder(path: Path, done: bool, batch: bool) -> None:

@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from docs_script import docs_generator
+from repo_scripts import docs_generator
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [
