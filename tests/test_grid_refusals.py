@@ -9,23 +9,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from tiny import tiny_grid_toml
 
 from pporpe.experiments.grid import parse_spec
 
-SPEC = """
-name = "tiny"
-methods = ["ppo", "rpe"]
-seeds = [0, 1]
-eval_episodes = 1
-
-[learner]
-layers = 1
-units = 8
-
-[[tasks]]
-env = "pendulum"
-episodes = 2
-"""
+SPEC = tiny_grid_toml(episodes=2, checkpoint_every=None)
 
 
 def reproduce(spec: Path, out: Path) -> tuple[int, str]:

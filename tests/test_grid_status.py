@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from tiny import tiny_grid_toml
 
 from pporpe.experiments.grid import load_spec, select_runs
 from pporpe.experiments.merge import grid_status
@@ -43,21 +44,7 @@ def test_a_chunk_of_a_finished_grid_changes_nothing_on_disk(tmp_path: Path) -> N
     assert digests(out) == before
 
 
-SPEC = """
-name = "chunks"
-methods = ["ppo"]
-seeds = [0, 1, 2]
-eval_episodes = 1
-checkpoint_every = 1
-
-[learner]
-layers = 1
-units = 8
-
-[[tasks]]
-env = "pendulum"
-episodes = 2
-"""
+SPEC = tiny_grid_toml(name="chunks", methods=("ppo",), seeds=(0, 1, 2), episodes=2)
 
 
 def test_chunks_merge_into_one_status_of_the_whole_grid(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from tiny import tiny_grid_toml
 
 import pporpe
 from pporpe.experiments.grid import load_spec
@@ -124,21 +125,7 @@ def test_evaluate_and_resumed_train_refuse_code(
     assert listing(run) == before  # nothing written: no evaluation.json, no records
 
 
-GRID = """
-name = "tiny"
-methods = ["ppo", "rpe"]
-seeds = [0, 1]
-eval_episodes = 1
-checkpoint_every = 1
-
-[learner]
-layers = 1
-units = 8
-
-[[tasks]]
-env = "pendulum"
-episodes = 3
-"""
+GRID = tiny_grid_toml()
 
 
 @pytest.mark.parametrize("where", ["run", "population"])

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from tiny import tiny_grid_toml
 
 from pporpe.batch import BatchConfig
 from pporpe.envs import MUJOCO_INSTALL
@@ -174,21 +175,7 @@ def test_ctrl_c_in_train_checkpoints_says_one_line_and_the_same_command_resumes(
     assert strip_time(read_records(run / "episodes.csv"))[:episodes] == first
 
 
-GRID = """
-name = "tiny"
-methods = ["ppo", "rpe"]
-seeds = [0]
-eval_episodes = 1
-checkpoint_every = 1
-
-[learner]
-layers = 1
-units = 8
-
-[[tasks]]
-env = "pendulum"
-episodes = 20000
-"""
+GRID = tiny_grid_toml(seeds=(0,), episodes=20000)
 
 
 def test_ctrl_c_in_a_grid_checkpoints_every_run_and_says_one_line(tmp_path: Path) -> None:

@@ -48,3 +48,22 @@ def population(
 def tiny_learner(**kw: Any) -> OnlineConfig:
     """One hidden layer of 8 units: the smallest learner a whole training run uses."""
     return OnlineConfig(**{"layers": 1, "units": 8, "compile": False, **kw})
+
+
+def tiny_grid_toml(
+    name: str = "tiny",
+    methods: tuple[str, ...] = ("ppo", "rpe"),
+    seeds: tuple[int, ...] = (0, 1),
+    episodes: int = 3,
+    checkpoint_every: int | None = 1,
+) -> str:
+    """The TOML of a small online grid on InvertedPendulum (1 x 8 networks, 1 test
+    episode per run): ``checkpoint_every`` None leaves the spec's default."""
+    every = "" if checkpoint_every is None else f"checkpoint_every = {checkpoint_every}\n"
+    quoted = ", ".join('"' + m + '"' for m in methods)
+    return (
+        f'name = "{name}"\nmethods = [{quoted}]\n'
+        f"seeds = [{', '.join(map(str, seeds))}]\neval_episodes = 1\n{every}\n"
+        '[learner]\nlayers = 1\nunits = 8\n\n[[tasks]]\nenv = "pendulum"\n'
+        f"episodes = {episodes}\n"
+    )
