@@ -13,8 +13,9 @@ comes from a committed result file, never from a hand-copied number:
 * ``docs/results/engines.md``: ``benchmarks/results/engine_shadow.json``;
 * ``docs/results/batch-mujoco.md``: ``results/batch-mujoco/REPORT.md`` once that grid's
   results are committed (until then a page that says it has not run yet);
-* the block of ``README.md`` between the ``results`` markers: ``results/paper/REPORT.md``
-  and ``summary.csv`` (and the batch grid's, once committed).
+* the block of ``README.md`` between the ``results`` markers: per task the most conclusive
+  committed grid's ``REPORT.md`` and ``summary.csv`` (:data:`HEADLINE_GRIDS`), and the
+  batch grid's once committed.
 
     python docs/generate.py           # rewrite the pages that changed
     python docs/generate.py --check   # exit 1 naming the pages that are not up to date
@@ -44,8 +45,8 @@ TASKS = {
 }
 METHODS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
 README_START = (
-    "<!-- results: written by python docs/generate.py from results/paper and "
-    "results/paper-testbed -->"
+    "<!-- results: written by python docs/generate.py from the committed grids' REPORT.md "
+    "and summary.csv -->"
 )
 README_END = "<!-- end of results -->"
 
@@ -110,19 +111,46 @@ def machine_line(machine: dict[str, Any], command: str) -> str:
 # --- The paper's comparison -------------------------------------------------------------
 
 
-GRIDS: dict[str, str] = {
-    "results/paper": "Table I",
-    "results/paper-testbed": "the author's test bed",
+HEADLINE_GRIDS: dict[str, tuple[str, ...]] = {
+    "pendulum": ("results/paper-50seeds", "results/paper"),
+    "swingup": ("results/paper-50seeds", "results/paper"),
+    "halfcheetah": ("results/paper-full", "results/paper"),
+    "ant": ("results/paper-full", "results/paper"),
 }
-"""The committed grids of the paper's comparison and the settings each ran with:
-``experiments/paper.toml`` (the paper's Table I as printed) and
-``experiments/paper-testbed.toml`` (``pporpe.online.TESTBED``, the pendulum tasks)."""
+"""Per task, the grids of the paper's comparison (Table I as printed) the README's headline
+may come from, most conclusive first: the 50-seed grid (``experiments/paper-50seeds.toml``)
+for the pendulum tasks, the full-length grid (``experiments/paper-full.toml``, 2000
+episodes) for the locomotion tasks, then the first reproduction (``experiments/paper.toml``,
+10 seeds, 200 episodes), which stays in the docs."""
+HEADLINE_MIN_SEEDS = 10
+"""A grid is the headline's source for a task once every method has this many finished
+seeds there (the project's floor for a learning-quality verdict); before that the next
+grid of :data:`HEADLINE_GRIDS` is."""
+WHAT_RAN = re.compile(r"^- (\w+): (\d+) training episodes per run, (\d+)/(\d+) runs finished")
 
 
 def paper_means(root: Path, grid: str = "results/paper") -> dict[tuple[str, str], float]:
     """Mean score per (task, method name) from a grid's ``summary.csv``."""
     with open(root / grid / "summary.csv", encoding="utf-8") as f:
         return {(r["task"], r["method"]): float(r["mean_score"]) for r in csv.DictReader(f)}
+
+
+def grid_seeds(root: Path, grid: str, mean_column: str = "mean_score") -> dict[str, int]:
+    """Per task of a grid's ``summary.csv``, the fewest finished seeds of any method with a
+    finite ``mean_column``."""
+    seeds: dict[str, int] = {}
+    with open(root / grid / "summary.csv", encoding="utf-8") as f:
+        for r in csv.DictReader(f):
+            n = int(r["seeds"]) if r[mean_column] not in ("", "nan") else 0
+            seeds[r["task"]] = min(seeds.get(r["task"], n), n)
+    return seeds
+
+
+def training_length(root: Path, grid: str) -> dict[str, int]:
+    """Per task of an online grid, its training episodes per run, from REPORT.md's
+    "What ran"."""
+    text = (root / grid / "REPORT.md").read_text(encoding="utf-8")
+    return {m[1]: int(m[2]) for m in map(WHAT_RAN.match, text.splitlines()) if m}
 
 
 def paper_claims(
@@ -139,35 +167,49 @@ def paper_claims(
 
 def short_verdict(verdicts: list[str]) -> str:
     """One verdict for a row: the shared one, shortened, or each one."""
-    short = [v.split(" (")[0] for v in verdicts]
+    short = [v.split(" (")[0].split(", on the")[0] for v in verdicts]
     return short[0] if len(set(short)) == 1 else "; ".join(short)
 
 
-def readme_rows(root: Path, grid: str) -> list[Row]:
-    """Per task of one grid: its settings, the mean scores, P(PPO-RPE > rival) of the
-    final score and the verdicts of the paper's claims of early learning and
-    regularisation ("-" where the paper makes no early-learning claim)."""
+def headline_grid(root: Path, task: str) -> str | None:
+    """The grid the README's row of ``task`` comes from (:data:`HEADLINE_GRIDS`): the first
+    with a committed report where every method has :data:`HEADLINE_MIN_SEEDS` seeds of the
+    task, else the last one committed with the task; None if none is."""
+    seeds = {g: grid_seeds(root, g).get(task, 0) for g in HEADLINE_GRIDS[task]
+             if (root / g / "REPORT.md").exists()}  # fmt: skip
+    committed = [g for g, n in seeds.items() if n > 0]
+    for grid in committed:
+        if seeds[grid] >= HEADLINE_MIN_SEEDS:
+            return grid
+    return committed[-1] if committed else None
+
+
+def readme_row(root: Path, grid: str, task: str) -> Row:
+    """One task of an online grid: the task linked to the grid's report, its training
+    episodes, seeds, the mean scores, P(PPO-RPE > rival) of the final score and the
+    verdicts of the paper's claims of final score, early learning and regularisation ("-"
+    where the paper makes no early-learning claim)."""
     means, claims = paper_means(root, grid), paper_claims(root, grid)
-    rows = []
-    for task in [t for t in TASKS if ("final performance", t, "PPO") in claims]:
-        scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
-        final = [claims[("final performance", task, rival)] for rival in ("PPO", "PPO-RB")]
-        early = [claims.get(("early learning", task, rival)) for rival in ("PPO", "PPO-RB")]
-        reg = [claims[("regularisation", task, rival)] for rival in ("PPO", "PPO-RB")]
-        verdicts = [
-            short_verdict([v for _, v in final]),
-            short_verdict([e[1] for e in early if e]) if all(early) else "-",
-            short_verdict([v for _, v in reg]),
-        ]
-        rows.append([TASKS[task], GRIDS[grid], scores, final[0][0], final[1][0], *verdicts])
-    return rows
+    scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
+    final = [claims[("final performance", task, rival)] for rival in ("PPO", "PPO-RB")]
+    early = [claims.get(("early learning", task, rival)) for rival in ("PPO", "PPO-RB")]
+    reg = [claims[("regularisation", task, rival)] for rival in ("PPO", "PPO-RB")]
+    verdicts = [
+        short_verdict([v for _, v in final]),
+        short_verdict([e[1] for e in early if e]) if all(early) else "-",
+        short_verdict([v for _, v in reg]),
+    ]
+    name = f"[{TASKS[task]}]({grid}/REPORT.md)"
+    length = f"{training_length(root, grid)[task]} episodes"
+    seeds = str(grid_seeds(root, grid)[task])
+    return [name, length, seeds, scores, final[0][0], final[1][0], *verdicts]
 
 
 BATCH_GRID = "results/batch-mujoco"
 """The batch study's grid (``experiments/batch-mujoco.toml``): its page and README rows
 appear once its REPORT.md is committed."""
-BATCH_SETTINGS = "batch PPO, CleanRL's settings"
-"""The settings column of the batch grid's README rows."""
+BATCH_SCORE = "score_mean_value"
+"""The batch grid's ``summary.csv`` column of the mean test score."""
 
 
 def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
@@ -177,7 +219,8 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
     of early learning and regularisation)."""
     report = (root / grid / "REPORT.md").read_text(encoding="utf-8")
     with open(root / grid / "summary.csv", encoding="utf-8") as f:
-        means = {(r["task"], r["method"]): float(r["score_mean_value"]) for r in csv.DictReader(f)}
+        means = {(r["task"], r["method"]): float(r[BATCH_SCORE]) for r in csv.DictReader(f)}
+    seeds = grid_seeds(root, grid, BATCH_SCORE)
     tables = md_tables(report)
     per_task = next(t for t in tables if t[0][:3] == ["claim", "task", "rival"])
     pooled = next(t for t in tables if t[0][:2] == ["claim", "rival"])
@@ -189,29 +232,53 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
             continue
         scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
         verdict = short_verdict([got[r][1] for r in ("PPO", "PPO-RB")])
-        rows.append([task, BATCH_SETTINGS, scores, got["PPO"][0], got["PPO-RB"][0], verdict,
-                     "-", "-"])  # fmt: skip
+        rows.append([f"[{task}]({grid}/REPORT.md)", BATCH_LENGTH, str(seeds[task]), scores,
+                     got["PPO"][0], got["PPO-RB"][0], verdict, "-", "-"])  # fmt: skip
     p = {r[1]: (r[3], r[4]) for r in pooled[1:] if r[0] == "test score"}
     iqm = {r[1]: r[4].split(" [")[0] for r in iqms[1:] if r[0] == "test score"}
-    if {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
+    if rows and {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
         scores = " / ".join(iqm[m] for m in METHODS.values()) + " (IQM, normalised)"
         verdict = short_verdict([p[r][1] for r in ("PPO", "PPO-RB")])
-        rows.append(["all tasks, pooled", BATCH_SETTINGS, scores, p["PPO"][0], p["PPO-RB"][0],
-                     verdict, "-", "-"])  # fmt: skip
+        n = str(min(int(r[2]) for r in rows))
+        rows.append([f"[{len(rows)} tasks, pooled]({grid}/REPORT.md)", BATCH_LENGTH, n, scores,
+                     p["PPO"][0], p["PPO-RB"][0], verdict, "-", "-"])  # fmt: skip
     return rows
 
 
+BATCH_LENGTH = "batch PPO"
+"""The training column of the batch grid's README rows (the steps are in the sentence
+above the table)."""
+README_HEAD = ["task", "training", "seeds", "mean score: PPO / PPO-RB / PPO-RPE",
+               "P(PPO-RPE > PPO)", "P(PPO-RPE > PPO-RB)", "final score", "early learning",
+               "stronger regularisation"]  # fmt: skip
+
+
+def verdict_sentence(claim: str, rows: list[Row], column: int) -> str:
+    """``claim``, then the tasks grouped by their verdict in ``column``, in order."""
+    groups: dict[str, list[str]] = {}
+    for r in rows:
+        if r[column] != "-":
+            groups.setdefault(r[column], []).append(r[0].split("](")[0].lstrip("["))
+    parts = [f"{v} on {', '.join(tasks)}" for v, tasks in groups.items()]
+    return f"- {claim}: {'; '.join(parts)}." if parts else ""
+
+
 def readme_results(root: Path) -> list[str]:
-    """The README's headline table: every committed grid of :data:`GRIDS`, task by task,
-    then the batch grid (:func:`batch_readme_rows`) once committed."""
-    rows = [row for grid in GRIDS if (root / grid / "REPORT.md").exists()
-            for row in readme_rows(root, grid)]  # fmt: skip
-    if (root / BATCH_GRID / "REPORT.md").exists():
-        rows += batch_readme_rows(root)
-    head = ["task", "settings", "mean score: PPO / PPO-RB / PPO-RPE", "P(PPO-RPE > PPO)",
-            "P(PPO-RPE > PPO-RB)", "final score", "early learning",
-            "stronger regularisation"]  # fmt: skip
-    return table(head, rows)
+    """The README's headline: per task the row of its most conclusive committed grid
+    (:func:`headline_grid`), then the batch grid's (:func:`batch_readme_rows`) once
+    committed; below the table, the verdicts of each claim in words."""
+    online = [readme_row(root, grid, task) for task in TASKS
+              if (grid := headline_grid(root, task))]  # fmt: skip
+    batch = batch_readme_rows(root) if (root / BATCH_GRID / "REPORT.md").exists() else []
+    lines = table(README_HEAD, online + batch, [":---", ":---", "---:", *[":---:"] * 3,
+                                                ":---", ":---", ":---"])  # fmt: skip
+    words = [
+        verdict_sentence("PPO-RPE's final score against PPO and PPO-RB, online", online, 6),
+        verdict_sentence("Its early learning", online, 7),
+        verdict_sentence("Its stronger regularisation", online, 8),
+        verdict_sentence("In batch PPO, its test score against PPO and PPO-RB", batch, 6),
+    ]
+    return [*lines, "", *[w for w in words if w]]
 
 
 def rewrite_blocks(text: str, start: str, end: str, blocks: list[list[str]], where: str) -> str:
@@ -511,7 +578,8 @@ def speedup_line(data: dict[str, Any]) -> str:
     ]
     return (
         "A single run (K = 1) by the fused engine against the torch engine, same run: "
-        + ", ".join(parts) + "."
+        + ", ".join(parts)
+        + "."
     )
 
 
@@ -587,7 +655,7 @@ def throughput_page(root: Path) -> str:
         "medians of the same alternating rounds): pporpe's step (`pporpe.bullet_step`, the "
         "default of `pporpe.envs.make_env`, the same numbers bit for bit, "
         "[see getting started](../getting-started.md)), pybullet_envs_gymnasium's own "
-        "(`bullet_step=\"reference\"`), and PyBullet's `stepSimulation` alone, the floor "
+        '(`bullet_step="reference"`), and PyBullet\'s `stepSimulation` alone, the floor '
         "of any step. The *env step* above is pporpe's.",
         "",
         *env_step_table(data),

@@ -199,8 +199,6 @@ steps = 640
 """
 
 
-
-
 @pytest.fixture(scope="module")
 def tiny_grid(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A real batch grid (3 methods x 2 tasks x 2 seeds, a few hundred steps) and its
@@ -242,6 +240,9 @@ def test_the_docs_page_and_readme_rows_of_the_batch_grid(tiny_grid: Path) -> Non
     page = gen.batch_mujoco_page(tiny_grid)
     assert "## Over the tasks" in page and "](../../results/batch-mujoco/fig_learning.png)" in page
     rows = gen.batch_readme_rows(tiny_grid)
-    assert [r[0] for r in rows] == ["pendulum", "Pendulum-v1", "all tasks, pooled"]
-    assert all(r[1] == gen.BATCH_SETTINGS and r[5].startswith("too few seeds") for r in rows)
-    assert rows[-1][2].endswith("(IQM, normalised)")
+    link = "](results/batch-mujoco/REPORT.md)"
+    assert [r[0] for r in rows] == [f"[pendulum{link}", f"[Pendulum-v1{link}",
+                                    f"[2 tasks, pooled{link}"]  # fmt: skip
+    assert all(r[1] == gen.BATCH_LENGTH and r[6].startswith("too few seeds") for r in rows)
+    assert [r[2] for r in rows] == ["2", "2", "2"]
+    assert rows[-1][3].endswith("(IQM, normalised)")

@@ -23,6 +23,7 @@ SOURCES = [
     "results/paper-testbed/REPORT.md",
     "results/paper-testbed/summary.csv",
     "results/paper-50seeds/REPORT.md",
+    "results/paper-50seeds/summary.csv",
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
     "docs/run-folders.md",
@@ -31,8 +32,6 @@ SOURCES = [
     "src/pporpe/runs/logger.py",
     "src/pporpe/runs/kinds.py",
 ]
-
-
 
 
 def test_generated_pages_are_what_the_script_writes_now() -> None:
@@ -45,7 +44,9 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     gen = docs_generator()
-    for rel in SOURCES:
+    grids = {g for gs in gen.HEADLINE_GRIDS.values() for g in gs} | {gen.BATCH_GRID}
+    tables = [f"{g}/{name}" for g in sorted(grids) for name in ("REPORT.md", "summary.csv")]
+    for rel in dict.fromkeys([*SOURCES, *(t for t in tables if (ROOT / t).exists())]):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / rel, tmp_path / rel)
     readme = tmp_path / "README.md"
@@ -65,40 +66,73 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
     assert readme.read_text() == text  # the table is back, the rest untouched
     assert folders.read_text() == columns  # and the columns
     assert batch.read_text() == population  # and the population's tables
-    report = tmp_path / "results/paper/REPORT.md"
-    report.write_text(report.read_text().replace("0.58 [0.39, 0.75]", "0.61 [0.40, 0.77]"))
+    (row, *_), *_ = [t[1:] for t in gen.md_tables(text[text.index(gen.README_START) :])]
+    report = tmp_path / row[0].split("](")[1].rstrip(")")  # the first row's grid
+    report.write_text(report.read_text().replace(row[4], "0.61 [0.40, 0.77]"))
     capsys.readouterr()
     assert gen.main(["--check", "--root", str(tmp_path)]) == 1
     out = capsys.readouterr().out
-    assert "README.md is not what" in out and "docs/results/reproduction.md" in out
+    assert "README.md is not what" in out and "docs/results/reproduction" in out
     assert "docs/results/ablation.md" not in out
 
 
 def test_the_readme_table_is_the_reports_final_score_claims() -> None:
-    """Each row of the README's table carries its grid's REPORT.md P(PPO-RPE > PPO) and
-    P(PPO-RPE > PPO-RB) of the final score for that task, and summary.csv's means: the
-    grid with Table I on the four tasks, then the one with the test bed's settings on the
-    two pendulum tasks (the batch grid's rows, once committed: tests/test_batch_report.py)."""
+    """Each online row of the README's table links the grid it comes from and carries that
+    REPORT.md's P(PPO-RPE > PPO) and P(PPO-RPE > PPO-RB) of the final score, summary.csv's
+    means and fewest seeds, in the order of the tasks (the batch grid's rows, once
+    committed: tests/test_batch_report.py)."""
     gen = docs_generator()
     readme = (ROOT / "README.md").read_text()
     block = readme[readme.index(gen.README_START) : readme.index(gen.README_END)]
     (rows,) = gen.md_tables(block)
-    rows = [r for r in rows if r[1] != gen.BATCH_SETTINGS]  # the batch grid's, once committed
+    rows = [r for r in rows[1:] if r[1] != gen.BATCH_LENGTH]
     tasks = {name: key for key, name in gen.TASKS.items()}
-    expected = [("InvertedPendulum", "Table I"), ("Swingup", "Table I"),
-                ("HalfCheetah", "Table I"), ("Ant", "Table I"),
-                ("InvertedPendulum", "the author's test bed"),
-                ("Swingup", "the author's test bed")]  # fmt: skip
-    assert [(r[0], r[1]) for r in rows[1:]] == expected
-    grid_of = {label: grid for grid, label in gen.GRIDS.items()}
-    for row in rows[1:]:
-        task, grid = tasks[row[0]], grid_of[row[1]]
-        report = (ROOT / grid / "REPORT.md").read_text()
+    assert [r[0].split("](")[0][1:] for r in rows] == list(gen.TASKS.values())
+    for row in rows:
+        name, link = row[0][1:-1].split("](")
+        task, grid = tasks[name], link.removesuffix("/REPORT.md")
+        assert grid == gen.headline_grid(ROOT, task) and grid in gen.HEADLINE_GRIDS[task]
+        report = (ROOT / link).read_text()
         claims = {tuple(r[:3]): r[3] for r in gen.find_table(report, "claim", "REPORT.md")[1:]}
         means = gen.paper_means(ROOT, grid)
-        assert row[3] == claims[("final performance", task, "PPO")]
-        assert row[4] == claims[("final performance", task, "PPO-RB")]
-        assert row[2] == " / ".join(f"{means[(task, m)]:.0f}" for m in ("PPO", "PPO-RB", "PPO-RPE"))
+        assert row[4] == claims[("final performance", task, "PPO")]
+        assert row[5] == claims[("final performance", task, "PPO-RB")]
+        assert row[3] == " / ".join(f"{means[(task, m)]:.0f}" for m in ("PPO", "PPO-RB", "PPO-RPE"))
+        assert row[2] == str(gen.grid_seeds(ROOT, grid)[task])
+        assert row[1] == f"{gen.training_length(ROOT, grid)[task]} episodes"
+    assert "- PPO-RPE's final score against PPO and PPO-RB, online: " in block
+
+
+def _summary(root: Path, grid: str, seeds: dict[str, int]) -> None:
+    """A grid's summary.csv and REPORT.md "What ran" with ``seeds`` per task (every method)."""
+    (root / grid).mkdir(parents=True)
+    lines = ["task,method,mean_score,seeds"]
+    lines += [f"{t},{m},1.0,{n}" for t, n in seeds.items() for m in ("PPO", "PPO-RB", "PPO-RPE")]
+    (root / grid / "summary.csv").write_text("\n".join(lines) + "\n")
+    ran = [f"- {t}: 200 training episodes per run, {3 * n}/150 runs finished"
+           for t, n in seeds.items()]  # fmt: skip
+    (root / grid / "REPORT.md").write_text("## What ran\n\n" + "\n".join(ran) + "\n")
+
+
+def test_the_headline_takes_a_task_from_its_most_conclusive_grid(tmp_path: Path) -> None:
+    """The 50-seed (or full-length) grid once every method has 10 seeds of the task; before
+    that the first reproduction; the newer grid when it is the only one; nothing without
+    a committed grid with the task."""
+    gen = docs_generator()
+    assert gen.headline_grid(tmp_path, "pendulum") is None
+    _summary(tmp_path, "results/paper-50seeds", {"pendulum": 12, "swingup": 9})
+    assert gen.headline_grid(tmp_path, "swingup") == "results/paper-50seeds"  # the only one
+    _summary(tmp_path, "results/paper", {"pendulum": 10, "swingup": 10, "ant": 10})
+    assert gen.headline_grid(tmp_path, "pendulum") == "results/paper-50seeds"
+    assert gen.headline_grid(tmp_path, "swingup") == "results/paper"  # 9 < 10 seeds
+    assert gen.headline_grid(tmp_path, "ant") == "results/paper"
+    assert gen.headline_grid(tmp_path, "halfcheetah") is None  # in no grid
+    lengths = gen.training_length(tmp_path, "results/paper")
+    assert lengths == {"pendulum": 200, "swingup": 200, "ant": 200}
+    verdicts = {"A": "equivalent", "B": "-", "C": "equivalent", "D": "supported"}
+    rows = [[f"[{t}](x)", "", "", "", "", "", v] for t, v in verdicts.items()]
+    assert gen.verdict_sentence("Final", rows, 6) == "- Final: equivalent on A, C; supported on D."
+    assert gen.verdict_sentence("Final", rows[1:2], 6) == ""
 
 
 def test_markdown_tables_are_read_row_by_row() -> None:
