@@ -185,3 +185,29 @@ def test_what_ran_names_a_batch_grids_step_budget(tmp_path: Path) -> None:
         "- pendulum: 4096 training steps per run, 8/8 runs finished"
         in (tmp_path / "REPORT.md").read_text()
     )
+
+
+def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> None:
+    """CPU hours of training and of the test episodes and wall hours, summed over the
+    finished runs whose done.json records CPU time; the others counted apart; no line
+    when none records it (an older grid's report is unchanged)."""
+    from pporpe.experiments.results import compute_line
+
+    runs = [{"key": f"t/ppo/seed{i}"} for i in range(4)]
+    grid = {"runs": runs}
+    done = [
+        {"cpu_time": 3600.0, "eval_cpu_time": 360.0, "train_time": 7200.0},
+        {"cpu_time": 1800.0, "eval_cpu_time": 0.0, "train_time": 1800.0, "cpu_time_since": 4},
+        {"train_time": 900.0},  # finished before CPU time was recorded
+    ]  # the fourth run has not finished
+    assert compute_line(tmp_path, grid) is None
+    for run, d in zip(runs, done, strict=False):
+        (tmp_path / run["key"]).mkdir(parents=True)
+        (tmp_path / run["key"] / "done.json").write_text(json.dumps(d))
+    line = compute_line(tmp_path, grid)
+    assert line is not None
+    assert line.startswith("- Compute: 1.60 CPU hours over the 2 finished runs that record it")
+    assert "(1.50 training, 0.10 test episodes; training wall time 2.50 h" in line
+    assert "; 1 of these runs counted from a resume part-way" in line
+    assert "; 1 other finished run without the record)" in line
+    assert compute_line(tmp_path, {"runs": runs[2:]}) is None

@@ -33,6 +33,7 @@ from pporpe.runs import (
     register_kind,
     train,
 )
+from pporpe.runs import loop as loop_module
 from pporpe.runs.folder import CHECKPOINT, load_checkpoint, save_checkpoint
 from pporpe.runs.kinds import kinds
 from pporpe.runs.loop import run_queue
@@ -573,3 +574,62 @@ def test_a_folder_without_the_test_bed_settings_reads_as_what_it_ran(tmp_path: P
     assert (read.learner.policy_gradient, read.learner.time_limit) == ("surrogate", "bootstrap")
     assert read.learner.min_scale == 1e-3 and read == cfg
     assert open_run_dir(run, json.loads((run / "config.json").read_text()))[1]  # done
+
+
+def test_cpu_time_is_each_runs_share_of_the_steps_and_resumes_with_its_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With a clock that moves 1 s per reading, each step of the queue costs 1 CPU second,
+    split evenly between the runs busy in it: the long run shares its 6 steps (3 s), the
+    short one its 2 (1 s), the queued one its 4 (2 s); done.json and the RunResult carry
+    it. A queue stopped mid-way resumes each run's CPU time from its checkpoint (the time
+    since is lost with the work), so the totals are those of the uninterrupted queue."""
+    register_kind(CountKind())
+    clock = iter(range(10**6))
+    monkeypatch.setattr(loop_module.time, "process_time", lambda: float(next(clock)))
+    cfgs = [CountConfig(seed=1, episodes=6), CountConfig(seed=2, episodes=2),
+            CountConfig(seed=3, episodes=4)]  # fmt: skip
+
+    def queue(root: Path) -> list[tuple[Any, Path]]:
+        return [(c, root / f"r{c.seed}") for c in cfgs]
+
+    full = run_queue(queue(tmp_path / "a"), capacity=2, home=tmp_path / "a")
+    assert [r.cpu_time for r in full] == [3.0, 1.0, 2.0]
+    done = [json.loads((r.run_dir / "done.json").read_text()) for r in full]
+    assert [d["cpu_time"] for d in done] == [3.0, 1.0, 2.0]
+    assert all(d["eval_cpu_time"] == 1.0 for d in done)  # two readings around the tests
+
+    class Stop(RuntimeError):
+        pass
+
+    seen = []
+
+    def stop_late(rec: Any) -> None:
+        seen.append(rec)
+        if len(seen) == 9:
+            raise Stop
+
+    with pytest.raises(Stop):
+        run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b", on_episode=stop_late)
+    resumed = run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b")
+    assert [r.resumed_from for r in resumed] == [4, 2, 2]  # resumed mid-way
+    assert [r.cpu_time for r in resumed] == [3.0, 1.0, 2.0]
+
+
+def test_a_run_resumed_from_a_checkpoint_without_cpu_time_says_where_it_counts_from(
+    tmp_path: Path,
+) -> None:
+    """A checkpoint written before pporpe recorded CPU time resumes with the count from its
+    unit of work (``cpu_time_since``), so a report can tell a part-way count from a whole."""
+    register_kind(CountKind())
+    with pytest.raises(Interrupted):
+        train(CountConfig(seed=7), tmp_path / "r", progress=False, on_episode=at_episode(2))
+    state = load_checkpoint(tmp_path / "r")
+    assert state["cpu_time_since"] == 0 and state["cpu_time"] >= 0.0
+    del state["cpu_time"], state["cpu_time_since"]  # as pporpe 0.5.0 wrote it
+    save_checkpoint(tmp_path / "r" / CHECKPOINT, state)
+    train(CountConfig(seed=7), tmp_path / "r", progress=False)
+    done = json.loads((tmp_path / "r" / "done.json").read_text())
+    assert done["cpu_time_since"] == 2 and done["chunks"] == 5
+    fresh = train(CountConfig(seed=7), tmp_path / "f", progress=False)
+    assert json.loads((fresh.run_dir / "done.json").read_text())["cpu_time_since"] == 0

@@ -10,7 +10,7 @@ from .aggregate import Aggregate
 from .batch_results import LAST_EPISODES, METRICS, Metric
 from .batch_summary import BatchStatistics, Comparison
 from .figures import METHOD_LABELS
-from .results import QUARTERS, Cell, tasks_of
+from .results import QUARTERS, Cell, compute_line, tasks_of
 from .stats import N_RESAMPLES, Estimate
 from .tables import quarter_markdown, report_head
 from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS
@@ -172,6 +172,8 @@ def _what_ran(root: Path, grid: dict[str, Any], cells: list[Cell]) -> list[str]:
         ran = f"; training episodes per finished run: {min(eps)}-{max(eps)}" if eps else ""
         budget = ", ".join(f"{b:,}" if isinstance(b, int) else str(b) for b in budgets)
         lines.append(f"- {env}: {budget} steps per run, {done}/{total} runs finished{ran}")
+    if (compute := compute_line(root, grid)) is not None:
+        lines.append(compute)
     source = grid.get("source", "SPEC.toml")
     lines += [
         "",

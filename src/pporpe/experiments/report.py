@@ -38,6 +38,7 @@ from .report_figures import curve_figure, summary_figure
 from .results import (
     EARLY_EPISODES,
     Cell,
+    compute_line,
     early_return,
     load_results,
     mean_regularization,
@@ -88,6 +89,12 @@ def _budget_lines(grid: dict[str, Any], cells: list[Cell]) -> list[str]:
     return lines
 
 
+def _compute(root: Path, grid: dict[str, Any]) -> list[str]:
+    """The grid's compute line (:func:`.results.compute_line`), if its runs record one."""
+    line = compute_line(root, grid)
+    return [line] if line else []
+
+
 def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = None) -> str:
     """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
     and the folder's hand-written ``notes.md`` (if any) at the top."""
@@ -96,7 +103,7 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     parts = report_head(root, grid)
     parts += [
         "## What ran\n",
-        "\n".join(_budget_lines(grid, cells)) + "\n",
+        "\n".join(_budget_lines(grid, cells) + _compute(root, grid)) + "\n",
         "## Scores, early learning, regularisation\n",
         summary_markdown(cells, stats),
         "## The paper's claims against these data\n",

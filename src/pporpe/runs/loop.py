@@ -83,6 +83,10 @@ class RunResult:
     evaluation or callbacks)."""
     chunks: int = 0
     """Units of work done in all."""
+    cpu_time: float = 0.0
+    """CPU seconds of training over all segments: the run's share of its process's CPU time
+    in the trainer's steps (a population's split evenly between its busy members); not
+    evaluation, callbacks or checkpoints."""
     last_scalars: dict[str, float] = field(default_factory=dict)
     """The last extra scalars the trainer reported (a batch update's statistics)."""
     error: str | None = None
@@ -108,6 +112,7 @@ def _finished_result(run: Path) -> RunResult:
         int(done.get("total_steps", 0)),
         float(done.get("train_time", 0.0)),
         chunks,
+        cpu_time=float(done.get("cpu_time", 0.0)),
         already_done=True,
     )
 
@@ -124,6 +129,13 @@ class _Run:
         written before updates were logged)."""
         self.wall_offset = 0.0
         self.excluded = 0.0
+        self.cpu_offset = 0.0
+        """CPU seconds of training of earlier segments (0 from a checkpoint without them)."""
+        self.cpu = 0.0
+        """CPU seconds of training in this segment (:meth:`_Queue.step` adds each share)."""
+        self.cpu_since = 0
+        """The unit of work from which :meth:`cpu_time` counts: 0, or where a run resumed
+        from a checkpoint written before pporpe recorded CPU time."""
         self.last: dict[str, float] = {}
         self.resumed_from = 0
         self.logger = RunLogger(run)
@@ -137,7 +149,11 @@ class _Run:
             self.records = [EpisodeRecord.from_row(r) for r in state["records"]]
             self.updates = [LoggedUpdate.from_row(r) for r in state.get("updates", [])]
             self.wall_offset = float(state["wall_time"])
+            self.cpu_offset = float(state.get("cpu_time", 0.0))
         self.resumed_from = trainer.counters(slot)["chunks"]
+        if state is not None:
+            recorded = "cpu_time" in state
+            self.cpu_since = int(state.get("cpu_time_since", 0)) if recorded else self.resumed_from
         if self.updates or state is None:
             self.first_update = self.updates[0].update if self.updates else 0
         else:
@@ -157,6 +173,9 @@ class _Run:
 
     def train_time(self) -> float:
         return self.wall_offset + (time.perf_counter() - self.t_start) - self.excluded
+
+    def cpu_time(self) -> float:
+        return self.cpu_offset + self.cpu
 
     def add(self, report: Progress) -> list[EpisodeRecord]:
         now = self.train_time()
@@ -197,6 +216,8 @@ class _Run:
         if self.updates:
             state["updates"] = [u.row() for u in self.updates]
         state["wall_time"] = self.train_time()
+        state["cpu_time"] = self.cpu_time()
+        state["cpu_time_since"] = self.cpu_since
         return state
 
     def checkpoint(self, trainer: Trainer, slot: int) -> None:
@@ -341,18 +362,22 @@ class _Queue:
         self.trainer.stop(slot)
         book.close()
         evaluation = None
+        t_cpu = time.process_time()
         if cfg.eval_episodes > 0:
             evaluation = evaluate_policy(
                 act, cfg.env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET,
                 progress=book.want_bar,
             )  # fmt: skip
             atomic_write_json(book.run / "evaluation.json", evaluation.to_dict())
-        done = {"episodes": len(book.records), **counters, "train_time": total_time}
+        eval_cpu = time.process_time() - t_cpu
+        done = {"episodes": len(book.records), **counters, "train_time": total_time,
+                "cpu_time": book.cpu_time(), "cpu_time_since": book.cpu_since,
+                "eval_cpu_time": eval_cpu}  # fmt: skip
         atomic_write_json(book.run / "done.json", done)
         self.live.remove(book.run)
         self.results[i] = RunResult(
             book.run, book.records, evaluation, book.resumed_from, counters["total_steps"],
-            total_time, counters["chunks"], book.last,
+            total_time, counters["chunks"], book.cpu_time(), book.last,
         )  # fmt: skip
         self.fill(slot)
 
@@ -410,7 +435,11 @@ class _Queue:
                 self.finish(slot)
             self.write_packing()
             return
+        t_cpu = time.process_time()
         reports = self.trainer.advance()
+        share = (time.process_time() - t_cpu) / len(self.books)
+        for book in self.books.values():
+            book.cpu += share
         by_count = self.report(reports)
         changed = self.settle(reports)
         # the packing changed (a run ended, its slot was refilled, the trainer shrank):
