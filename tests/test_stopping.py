@@ -240,3 +240,55 @@ def test_a_mujoco_task_without_mujoco_says_what_to_install(tmp_path: Path) -> No
         f"{MUJOCO_INSTALL}",
     )
     assert not out.exists()
+
+
+def test_sigterm_to_a_grid_checkpoints_every_run_as_ctrl_c_does(tmp_path: Path) -> None:
+    """What a scheduler (or ``kill``) sends before it kills: to the parent alone, then to
+    the whole group; each time the runs are checkpointed at a step, one line is printed
+    and the exit status is 143 (128 + SIGTERM); the same command resumes."""
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(GRID)
+    out = tmp_path / "out"
+    args = ("--out", str(out), "--workers", "1", "--population", "2", "--checkpoint-seconds",
+            "0", "--quiet")  # fmt: skip
+    csvs = [out / "pendulum" / m / "seed0" / "episodes.csv" for m in ("ppo", "rpe")]
+    for target in (os.kill, os.killpg):
+        before = min(rows(c) for c in csvs)  # 0, then what the first stop checkpointed
+        proc = launch("reproduce", str(spec), *args)
+        wait_for(lambda b=before: min(rows(c) for c in csvs) >= b + 2, proc)  # type: ignore[misc]
+        target(proc.pid, signal.SIGTERM)
+        code, line = one_line(proc)
+        assert (code, line) == (
+            143,
+            "pporpe reproduce: interrupted: 0 of 2 runs done; resume with the same command",
+        )
+        (home,) = (out / "populations").iterdir()
+        members = load_checkpoint(home)["members"]
+        assert sorted(len(m["records"]) for m in members.values()) == sorted(
+            rows(c) for c in csvs
+        )
+    assert not list(out.rglob("error.txt"))
+
+
+def test_the_first_signal_asks_the_second_interrupts_and_the_handlers_come_back() -> None:
+    """SIGTERM and SIGINT alike: the first sets the request (and says which signal), the
+    second raises KeyboardInterrupt at once; on exit the previous handlers are back, and
+    an ignored SIGINT (a background process) stays ignored."""
+    from pporpe.runs.stopping import stop_on_signals
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with stop_on_signals() as stop:
+            assert not stop()
+            os.kill(os.getpid(), sig)
+            assert stop() and stop.signum == sig
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), sig)
+        assert {s: signal.getsignal(s) for s in before} == before
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with stop_on_signals():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) is not before[signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGINT, before[signal.SIGINT])

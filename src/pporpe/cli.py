@@ -13,11 +13,17 @@ from typing import Any
 __all__ = ["build_parser", "main"]
 
 INTERRUPTED_EXIT = 130
-"""Exit status after Ctrl-C (128 + SIGINT), as a shell reports a process SIGINT stopped."""
+"""Exit status after Ctrl-C (128 + SIGINT), as a shell reports a process SIGINT stopped;
+after SIGTERM, 143 (128 + SIGTERM)."""
 
 
 class _CommandInterrupted(KeyboardInterrupt):
-    """A command stopped by Ctrl-C; its message is the one line that says how far it got."""
+    """A command stopped by Ctrl-C or SIGTERM; its message is the one line that says how far
+    it got, ``exit_status`` 128 + the signal."""
+
+    def __init__(self, message: str, signum: int | None = None) -> None:
+        super().__init__(message)
+        self.exit_status = 128 + signum if signum else INTERRUPTED_EXIT
 
 
 def _cmd_figures(args: argparse.Namespace) -> int:
@@ -131,15 +137,16 @@ def _trained_line(result: Any, batch: bool) -> str:
 def _train_until_interrupted(cfg: Any, out: str, progress: bool) -> Any:
     """``train``, where Ctrl-C stops the run at its next step with a checkpoint there."""
     from .runs.loop import train
-    from .runs.stopping import Interrupted, stop_on_sigint
+    from .runs.stopping import Interrupted, stop_on_signals
 
     try:
-        with stop_on_sigint() as stop:
+        with stop_on_signals() as stop:
             return train(cfg, out, progress=progress, stop=stop)
     except Interrupted as exc:
         episodes = max(exc.episodes.values(), default=0)
         raise _CommandInterrupted(
-            f"interrupted at episode {episodes} (checkpointed); resume with the same command"
+            f"interrupted at episode {episodes} (checkpointed); resume with the same command",
+            stop.signum,
         ) from None
 
 
@@ -221,16 +228,17 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def _reproduce_until_interrupted(spec: Any, whole: Any, args: argparse.Namespace) -> Any:
-    """``reproduce``, where Ctrl-C stops every running run at its next step with a
-    checkpoint there (a second Ctrl-C stops at once)."""
+    """``reproduce``, where Ctrl-C or SIGTERM stops every running run at its next step with
+    a checkpoint there (a second signal stops at once)."""
     from pathlib import Path
 
     from .experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS, DEFAULT_POPULATION, reproduce
-    from .runs.stopping import stop_on_sigint
+    from .runs.stopping import StopRequest, stop_on_signals
 
     every = args.checkpoint_seconds
+    stop = StopRequest()
     try:
-        with stop_on_sigint() as stop:
+        with stop_on_signals() as stop:
             outcome = reproduce(
                 spec, args.out, backend=args.backend, workers=args.workers,
                 address=args.address, progress=not args.quiet,
@@ -243,7 +251,8 @@ def _reproduce_until_interrupted(spec: Any, whole: Any, args: argparse.Namespace
     if outcome is None or outcome.interrupted:
         done = sum((Path(args.out) / run.key / "done.json").exists() for run in spec.runs)
         raise _CommandInterrupted(
-            f"interrupted: {done} of {len(spec.runs)} runs done; resume with the same command"
+            f"interrupted: {done} of {len(spec.runs)} runs done; resume with the same command",
+            stop.signum,
         )
     return outcome
 
@@ -447,14 +456,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"pporpe {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as exc:  # Ctrl-C: one line, never a traceback
-        line = (
-            str(exc)
-            if isinstance(exc, _CommandInterrupted)
-            else "interrupted; the work since the last checkpoint is lost; resume with the "
-            "same command"
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM: one line, never a traceback
+        if isinstance(exc, _CommandInterrupted):
+            print(f"pporpe {args.command}: {exc}", file=sys.stderr)
+            return exc.exit_status
+        print(
+            f"pporpe {args.command}: interrupted; the work since the last checkpoint is lost; "
+            "resume with the same command",
+            file=sys.stderr,
         )
-        print(f"pporpe {args.command}: {line}", file=sys.stderr)
         return INTERRUPTED_EXIT
 
 

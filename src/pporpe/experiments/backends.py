@@ -2,10 +2,10 @@
 
 Each job goes through :func:`run_job`, which locks its run folders while it trains them.
 
-Ctrl-C: the local workers ignore SIGINT (a terminal sends it to every process of the
-group); the parent, asked to stop (its ``stop``), sets an event that every worker's run
-loop reads after each unit of work, so each job checkpoints its runs at that step and
-reports them ``"interrupted"``; jobs not started yet are cancelled. Ray tasks are
+Ctrl-C or SIGTERM: the local workers ignore both (a terminal or a scheduler sends them to
+every process of the group); the parent, asked to stop (its ``stop``), sets an event that
+every worker's run loop reads after each unit of work, so each job checkpoints its runs at
+that step and reports them ``"interrupted"``; jobs not started yet are cancelled. Ray tasks are
 cancelled (their runs keep their last checkpoints).
 """
 
@@ -130,14 +130,16 @@ def _worker_init(stop: Any = None) -> None:
     """Pool initializer: die with the parent, leave Ctrl-C to it, and keep C-level chatter
     off the terminal.
 
-    The worker gets SIGKILL when the parent process dies (Linux). It ignores SIGINT: the
-    parent asks it to stop through ``stop`` (kept in :data:`_STOP`), at a safe point. Its
+    The worker gets SIGKILL when the parent process dies (Linux). It ignores SIGINT and
+    SIGTERM (a terminal or a scheduler sends them to every process of the job): the parent
+    asks it to stop through ``stop`` (kept in :data:`_STOP`), at a safe point. Its
     standard output goes to /dev/null at the descriptor level (PyBullet prints from C on
     every connection); tracebacks of failed runs are still written to their ``error.txt``.
     """
     global _STOP
     _STOP = stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         import ctypes
 

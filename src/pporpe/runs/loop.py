@@ -576,7 +576,7 @@ def run_queue(
     run keeps its last checkpoint). ``stop`` is asked after every unit of work; when it
     returns True, every busy run is checkpointed at that step and
     :class:`~pporpe.runs.stopping.Interrupted` is raised (``pporpe train`` and grids pass
-    :func:`~pporpe.runs.stopping.stop_on_sigint`'s request: Ctrl-C).
+    :func:`~pporpe.runs.stopping.stop_on_signals`' request: Ctrl-C or SIGTERM).
     """
     _check_numbers(num_threads, checkpoint_seconds, checkpoint_within)
     if not runs:
