@@ -37,9 +37,11 @@ Five subcommands, each resumable (a seed whose result file exists is skipped):
 
 ``summarize``
     ``summary.json`` (the versions, the commands and a list ``runs`` of ``{"implementation":
-    "pporpe" | "cleanrl" | "sb3", "task", "seed", "last100_mean", "steps_per_s"}``),
-    ``summary.md`` (per task: the last-100 mean with bootstrap CIs, P(pporpe > CleanRL) with
-    its CI, and P(pporpe > SB3) where SB3 ran) and ``curves_<task>.png`` (the mean learning
+    "pporpe" | "cleanrl" | "sb3", "task", "seed", "last100_mean", "steps_per_s",
+    "steps_per_cpu_s"}``: steps per second of the run's wall clock, and per CPU second where
+    its result file records ``cpu_s``), ``summary.md`` (per task: the last-100 mean with
+    bootstrap CIs, P(pporpe > CleanRL) with its CI, P(pporpe > SB3) where SB3 ran, and the
+    median steps per CPU second) and ``curves_<task>.png`` (the mean learning
     curves over steps, 95% bands).
 
 The metric is CleanRL's: the mean return of the last 100 training episodes. Result files:
@@ -52,6 +54,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import subprocess
 import sys
 import time
@@ -101,6 +104,12 @@ def cleanrl_command(args: argparse.Namespace, seed: int, steps: int) -> list[str
             "--seed", str(seed), "--total-timesteps", str(steps), "--no-cuda"]  # fmt: skip
 
 
+def child_cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process's finished children so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_cleanrl_once(args: argparse.Namespace, seed: int, steps: int, work: Path) -> str:
     """CleanRL's script in ``work`` (its runs/ folder lands there); its standard output."""
     work.mkdir(parents=True, exist_ok=True)
@@ -124,11 +133,12 @@ def run_cleanrl(args: argparse.Namespace) -> int:
         if out.exists():
             print(f"seed {seed}: done already ({out})", flush=True)
             continue
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), child_cpu_seconds()
         text = run_cleanrl_once(args, seed, args.steps, args.work / args.task / f"seed{seed}")
         parsed = parse_cleanrl_output(text)
         write_json(out, {"implementation": "cleanrl", "task": args.task, "seed": seed,
                          "total_steps": args.steps, "wall_s": time.perf_counter() - t0,
+                         "cpu_s": child_cpu_seconds() - cpu0,
                          "cleanrl_commit": git_commit(args.checkout),
                          "cleanrl_versions": versions_of(args.python),
                          "cleanrl_command": " ".join(cleanrl_command(args, seed, args.steps)),
@@ -190,14 +200,15 @@ def run_sb3(args: argparse.Namespace) -> int:
             print(f"seed {seed}: done already ({out})", flush=True)
             continue
         model = sb3_model(args.task, seed)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         model.learn(total_timesteps=args.steps)
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
         monitor = model.get_env().venv.envs[0]
         returns = [float(r) for r in monitor.get_episode_rewards()]
         steps = np.cumsum(monitor.get_episode_lengths()).tolist()
         write_json(out, {"implementation": "sb3", "task": args.task, "seed": seed,
                          "total_steps": int(model.num_timesteps), "wall_s": wall,
+                         "cpu_s": cpu,
                          "sb3_version": stable_baselines3.__version__,
                          "episode_steps": [int(x) for x in steps], "returns": returns,
                          "steps_per_s": model.num_timesteps / wall})  # fmt: skip
@@ -218,12 +229,14 @@ def export_pporpe(args: argparse.Namespace) -> int:
         seed = int(run.name.removeprefix("seed"))
         records = read_records(run / "episodes.csv")
         done = json.loads((run / "done.json").read_text())
+        whole = "cpu_time" in done and not done.get("cpu_time_since", 0)
+        cpu = {"cpu_s": done["cpu_time"]} if whole else {}
         write_json(result_path(args.root, "pporpe", args.task, seed),
                    {"implementation": "pporpe", "task": args.task, "seed": seed,
                     "total_steps": done["total_steps"], "run_folder": str(run),
                     "episode_steps": [r.total_steps for r in records],
                     "returns": [r.ret for r in records],
-                    "steps_per_s": done["total_steps"] / done["train_time"]})  # fmt: skip
+                    "steps_per_s": done["total_steps"] / done["train_time"], **cpu})  # fmt: skip
         found += 1
     print(f"{found} finished PPO runs of {args.task} exported from {args.study}")
     return 0
@@ -280,9 +293,11 @@ def load_runs(root: Path) -> list[dict[str, Any]]:
     for impl in IMPLEMENTATIONS:
         for path in sorted((root / impl).glob("*/seed*.json")):
             data = json.loads(path.read_text())
+            cpu = data.get("cpu_s")
             runs.append({"implementation": impl, "task": data["task"], "seed": data["seed"],
                          "last100_mean": last_mean(data["returns"]),
                          "steps_per_s": data["steps_per_s"],
+                         "steps_per_cpu_s": data["total_steps"] / cpu if cpu else None,
                          "episode_steps": data["episode_steps"],
                          "returns": data["returns"]})  # fmt: skip
     return runs
@@ -312,7 +327,9 @@ def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
     row: dict[str, Any] = {"task": task, "seeds": {i: len(g) for i, g in groups.items()}}
     for impl, group in groups.items():
         row[impl] = bootstrap_ci([r["last100_mean"] for r in group]).as_dict()
-        row[f"{impl}_steps_per_s"] = float(np.median([r["steps_per_s"] for r in group]))
+        rates = [r["steps_per_cpu_s"] for r in group if r["steps_per_cpu_s"] is not None]
+        if rates:
+            row[f"{impl}_steps_per_cpu_s"] = float(np.median(rates))
     mine = [r["last100_mean"] for r in groups["pporpe"]]
     for rival, key in (("cleanrl", "p_pporpe_better"), ("sb3", "p_pporpe_better_sb3")):
         if rival in groups:
@@ -375,8 +392,8 @@ def summarize(args: argparse.Namespace) -> int:
     rows = [row for task in TASKS if (row := task_row(runs, task)) is not None]
     for task in {r["task"] for r in runs}:
         plot(runs, task, args.root / f"curves_{task}.png")
-    slim = [{k: r[k] for k in ("implementation", "task", "seed", "last100_mean", "steps_per_s")}
-            for r in runs]  # fmt: skip
+    keys = ("implementation", "task", "seed", "last100_mean", "steps_per_s", "steps_per_cpu_s")
+    slim = [{k: r[k] for k in keys} for r in runs]
     write_json(args.root / "summary.json", {**provenance(args.root), "runs": slim, "tasks": rows})
     lines = summary_lines(rows)
     (args.root / "summary.md").write_text("\n".join(lines) + "\n")
@@ -389,11 +406,12 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
     mean and P(pporpe > SB3) where it ran ("-" where not)."""
     lines = ["| task | seeds (pporpe / CleanRL / SB3) | pporpe last-100 mean | "
              "CleanRL last-100 mean | P(pporpe > CleanRL) | SB3 last-100 mean | "
-             "P(pporpe > SB3) | steps/s (pporpe / CleanRL / SB3) |",
+             "P(pporpe > SB3) | steps per CPU second (pporpe / CleanRL / SB3) |",
              "| --- | --- | ---: | ---: | :---: | ---: | :---: | ---: |"]  # fmt: skip
     for row in rows:
         seeds = " / ".join(str(row["seeds"].get(i, 0)) for i in IMPLEMENTATIONS)
-        rates = " / ".join(f"{row[f'{i}_steps_per_s']:.0f}" if i in row else "-"
+        rates = " / ".join(f"{row[f'{i}_steps_per_cpu_s']:.0f}"
+                           if f"{i}_steps_per_cpu_s" in row else "-"
                            for i in IMPLEMENTATIONS)  # fmt: skip
         sb3 = fmt(row["sb3"]) if "sb3" in row else "-"
         lines.append(

@@ -718,7 +718,8 @@ def p_text(p: dict[str, float] | None) -> str:
 
 def cleanrl_rows(data: dict[str, Any]) -> list[Row]:
     """Per task of benchmarks/results/cleanrl/summary.json: seeds, the last-100 means with
-    their CIs, P(pporpe > CleanRL), SB3's mean and P(pporpe > SB3) where it ran, steps/s."""
+    their CIs, P(pporpe > CleanRL), SB3's mean and P(pporpe > SB3) where it ran, and the
+    median steps per CPU second of the runs that recorded their CPU time."""
     impls = ("pporpe", "cleanrl", "sb3")
     rows = []
     for r in data["tasks"]:
@@ -726,8 +727,8 @@ def cleanrl_rows(data: dict[str, Any]) -> list[Row]:
             r["task"], " / ".join(str(r["seeds"].get(i, 0)) for i in impls),
             ci_text(r["pporpe"]), ci_text(r["cleanrl"]), p_text(r["p_pporpe_better"]),
             ci_text(r["sb3"]) if "sb3" in r else "-", p_text(r.get("p_pporpe_better_sb3")),
-            " / ".join(f"{r[f'{i}_steps_per_s']:.0f}" if f"{i}_steps_per_s" in r else "-"
-                       for i in impls),
+            " / ".join(f"{r[f'{i}_steps_per_cpu_s']:.0f}" if f"{i}_steps_per_cpu_s" in r
+                       else "-" for i in impls),
             CLEANRL_PUBLISHED.get(r["task"], "-"),
         ])  # fmt: skip
     return rows
@@ -757,6 +758,16 @@ def cleanrl_throughput_lines(root: Path) -> list[str]:
     ]  # fmt: skip
 
 
+CPU_RATE_NOTE = (
+    "Steps per CPU second: a run's environment steps over the CPU seconds it used (CleanRL's "
+    "script: its process's, from the operating system; SB3: its `learn`; pporpe: the run's "
+    "share of its process's, from `done.json`: the study trains 30 runs per process), the "
+    "median over the runs that recorded it, \"-\" where none did. Unlike steps per wall "
+    "second, it does not depend on what else shared the cores."
+)
+"""Below the CleanRL side-by-side table: what its throughput column is."""
+
+
 def vs_cleanrl_page(root: Path) -> str:
     """pporpe's batch PPO beside CleanRL's script (and SB3's PPO) seed by seed, from
     benchmarks/results/cleanrl/summary.json, or a page that says it has not run yet."""
@@ -779,12 +790,12 @@ def vs_cleanrl_page(root: Path) -> str:
     data = read_json(root, path)
     head = ["task", "seeds (pporpe / CleanRL / SB3)", "pporpe", "CleanRL",
             "P(pporpe > CleanRL)", "SB3", "P(pporpe > SB3)",
-            "steps/s (pporpe / CleanRL / SB3)", "CleanRL published"]  # fmt: skip
+            "steps per CPU second (pporpe / CleanRL / SB3)", "CleanRL published"]  # fmt: skip
     figures = [f"![{t}](../../benchmarks/results/cleanrl/curves_{t}.png)"
                for t in sorted({r["task"] for r in data["runs"]})]  # fmt: skip
     lines += [machine_line(data["machine"], data["command"]), "",
               *table(head, cleanrl_rows(data), ["---", "---", *["---:"] * 7]), "",
-              *figures]  # fmt: skip
+              CPU_RATE_NOTE, "", *figures]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

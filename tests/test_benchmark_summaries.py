@@ -546,8 +546,9 @@ def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
     import cleanrl
 
     def run(impl: str, seed: int, value: float) -> dict[str, Any]:
+        cpu = 1000.0 + seed if impl == "pporpe" else None  # CleanRL's: not recorded
         return {"implementation": impl, "task": "Hopper-v4", "seed": seed,
-                "last100_mean": value, "steps_per_s": 1000.0}  # fmt: skip
+                "last100_mean": value, "steps_per_s": 1000.0, "steps_per_cpu_s": cpu}  # fmt: skip
 
     assert cleanrl.task_row([run("cleanrl", 1, 5.0)], "Hopper-v4") is None
     runs = [run("pporpe", s, v) for s, v in enumerate([3.0, 4.0, 6.0])]
@@ -558,7 +559,7 @@ def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
     assert row["p_pporpe_better"]["value"] == pytest.approx(4 / 6)
     assert row["pporpe"]["value"] == pytest.approx(13 / 3)
     line = cleanrl.summary_lines([row])[2]
-    assert "p_pporpe_better_sb3" not in row and "| - | - | 1000 / 1000 / - |" in line
+    assert "p_pporpe_better_sb3" not in row and "| - | - | 1001 / - / - |" in line
     runs += [run("sb3", s, v) for s, v in enumerate([4.0, 4.0, 7.0])]
     row = cleanrl.task_row(runs, "Hopper-v4")
     assert row is not None and row["seeds"] == {"pporpe": 3, "cleanrl": 2, "sb3": 3}
