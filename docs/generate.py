@@ -216,7 +216,7 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
     """Per task of a batch grid (``pporpe report``'s batch REPORT.md and summary.csv), and
     pooled over its tasks: the mean test scores (pooled: the IQM of the normalised scores),
     P(PPO-RPE > rival) of the test score and its verdict ("-" for the online grids' claims
-    of early learning and regularisation)."""
+    of early learning and regularisation); the pooled row once two tasks have one."""
     report = (root / grid / "REPORT.md").read_text(encoding="utf-8")
     with open(root / grid / "summary.csv", encoding="utf-8") as f:
         means = {(r["task"], r["method"]): float(r[BATCH_SCORE]) for r in csv.DictReader(f)}
@@ -228,7 +228,7 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
     rows = []
     for task in dict.fromkeys(t for t, _ in means):
         got = {r[2]: (r[3], r[5]) for r in per_task[1:] if r[:2] == ["test score", task]}
-        if not {"PPO", "PPO-RB"} <= set(got):
+        if not {"PPO", "PPO-RB"} <= set(got) or not seeds.get(task):
             continue
         scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
         verdict = short_verdict([got[r][1] for r in ("PPO", "PPO-RB")])
@@ -236,7 +236,7 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
                      got["PPO"][0], got["PPO-RB"][0], verdict, "-", "-"])  # fmt: skip
     p = {r[1]: (r[3], r[4]) for r in pooled[1:] if r[0] == "test score"}
     iqm = {r[1]: r[4].split(" [")[0] for r in iqms[1:] if r[0] == "test score"}
-    if rows and {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
+    if len(rows) > 1 and {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
         scores = " / ".join(iqm[m] for m in METHODS.values()) + " (IQM, normalised)"
         verdict = short_verdict([p[r][1] for r in ("PPO", "PPO-RB")])
         n = str(min(int(r[2]) for r in rows))
@@ -263,6 +263,18 @@ def verdict_sentence(claim: str, rows: list[Row], column: int) -> str:
     return f"- {claim}: {'; '.join(parts)}." if parts else ""
 
 
+def batch_sentence(rows: list[Row]) -> str:
+    """The batch grid's verdicts in words: per task, then pooled (the last row, when it is
+    the pooled one)."""
+    tasks = [r for r in rows if "pooled" not in r[0]]
+    text = verdict_sentence("In batch PPO, its test score against PPO and PPO-RB", tasks, 6)
+    pooled = [r for r in rows if "pooled" in r[0]]
+    if text and pooled:
+        text = f"{text[:-1]}; pooled over the {len(tasks)} tasks, {pooled[0][6]}."
+    link = rows[0][0].split("](")[-1].rstrip(")") if rows else ""
+    return f"{text[:-1]} ([the study]({link}))." if text else ""
+
+
 def readme_results(root: Path) -> list[str]:
     """The README's headline: per task the row of its most conclusive committed grid
     (:func:`headline_grid`), then the batch grid's (:func:`batch_readme_rows`) once
@@ -276,7 +288,7 @@ def readme_results(root: Path) -> list[str]:
         verdict_sentence("PPO-RPE's final score against PPO and PPO-RB, online", online, 6),
         verdict_sentence("Its early learning", online, 7),
         verdict_sentence("Its stronger regularisation", online, 8),
-        verdict_sentence("In batch PPO, its test score against PPO and PPO-RB", batch, 6),
+        batch_sentence(batch),
     ]
     return [*lines, "", *[w for w in words if w]]
 

@@ -246,3 +246,9 @@ def test_the_docs_page_and_readme_rows_of_the_batch_grid(tiny_grid: Path) -> Non
     assert all(r[1] == gen.BATCH_LENGTH and r[6].startswith("too few seeds") for r in rows)
     assert [r[2] for r in rows] == ["2", "2", "2"]
     assert rows[-1][3].endswith("(IQM, normalised)")
+    sentence = gen.batch_sentence(rows)
+    assert sentence.startswith("- In batch PPO, its test score against PPO and PPO-RB: too few")
+    assert sentence.endswith("on pendulum, Pendulum-v1; pooled over the 2 tasks, "
+                             f"{rows[-1][6]} ([the study](results/batch-mujoco/REPORT.md)).")
+    assert gen.batch_sentence(rows[:1]).endswith("on pendulum ([the study]"
+                                                 "(results/batch-mujoco/REPORT.md)).")  # fmt: skip

@@ -60,8 +60,9 @@ def _verdict_legend() -> str:
         "Verdicts, from the 95% CI of P(PPO-RPE > rival): **supported** when it lies above "
         "0.5, **contradicted** when below, **equivalent** when it lies strictly inside "
         f"{lo}-{hi} (Vargha and Delaney's bounds of a medium effect), otherwise **cannot "
-        "tell**. A CI that touches 0.5 or a bound is not past it. No verdict where a method "
-        f"has fewer than {MIN_SEEDS} seeds or the two methods' seeds differ.\n"
+        "tell**. A CI that touches 0.5 or a bound is not past it. Two methods are compared on "
+        "the seeds both finished (the verdict says how many other runs were left out); no "
+        f"verdict where they share fewer than {MIN_SEEDS}.\n"
     )
 
 
