@@ -605,3 +605,40 @@ def test_progress_bar_shows_its_own_time_left_and_not_tqdms(tmp_path: Path) -> N
     (run / "done.json").write_text("{}")
     bar.close()  # counted once more: a short grid ended showing its first count
     assert "episodes=10/10]" in file.getvalue().rsplit("\r", 1)[-1]
+
+
+def test_progress_counts_the_steps_of_batch_runs_and_their_time_left(tmp_path: Path) -> None:
+    """Batch runs have a budget in steps, not episodes: the bar counts their steps (live,
+    else checkpointed; a finished run its whole budget) and the time left at this call's
+    step rate; a grid of batch runs showed only its run count, 0/120 for an hour."""
+    a, b, c = (tmp_path / "task" / "m" / x for x in "abc")
+    for run in (a, b, c):
+        run.mkdir(parents=True)
+    (a / "episodes.csv").write_text(csv_rows([1000] * 100))  # 100k steps checkpointed
+    (b / "done.json").write_text("{}")
+    clock = Clock()
+    bar = GridProgress(3, 0, [a, b, c], enabled=False, clock=clock,
+                       step_budgets=[1_000_000, 1_000_000, 1_000_000])  # fmt: skip
+    assert bar.steps_total == 3_000_000 and bar.episodes_total == 0
+    assert bar.count_steps() == "1.1M/3.0M"  # a 100k, b done, c nothing yet
+
+    def live(run: Path, steps: int) -> None:
+        data = {"episodes": 1, "total_steps": steps, "lengths": [1000], "time": time.time()}
+        (run / "progress.json").write_text(json.dumps(data))
+
+    clock.t = 60.0
+    live(a, 160_000)
+    live(c, 60_000)
+    # 120k steps in a minute; 1.78M left: 14.8 min
+    assert bar.count_steps() == "1.2M/3.0M, left~15 min"
+    live(a, 2_000_000)  # past its budget (a last rollout): counted up to it
+    assert bar.count_steps().startswith("2.1M/3.0M")
+
+
+def test_a_grid_of_batch_runs_shows_its_steps_on_the_bar(tmp_path: Path) -> None:
+    file = io.StringIO()
+    (tmp_path / "r").mkdir()
+    bar = GridProgress(1, 0, [tmp_path / "r"], enabled=True, file=file, step_budgets=[4096])
+    bar.poll(1, [])
+    assert "steps=0/4096" in file.getvalue().rsplit("\r", 1)[-1]
+    bar.close()

@@ -80,6 +80,13 @@ def run_progress(run_dir: Path, budget: int, since: float | None = None) -> RunP
     return RunProgress(n, steps, None if length is None else (budget - n) * length, length)
 
 
+def _amount(x: float) -> str:
+    """``"950"``, ``"26k"``, ``"1.2M"``: a count of steps, short."""
+    if x >= 1e6:
+        return f"{x / 1e6:.1f}M"
+    return f"{x / 1e3:.0f}k" if x >= 1e4 else f"{x:.0f}"
+
+
 def _minutes(seconds: float) -> str:
     """``"40 s"`` under a minute, ``"12 min"``, ``"3.4 h"`` from an hour on."""
     if seconds < 60:
@@ -90,9 +97,9 @@ def _minutes(seconds: float) -> str:
 class GridProgress:
     """One overall progress bar: runs done (read from the run folders, so that runs
     finishing inside a population count at once), failed, jobs running, and, for runs with
-    an episode budget, the episodes done with the time left at this call's step rate (a
-    population finishes its runs together, so the run count alone stays at 0 for most of a
-    task)."""
+    an episode budget, the episodes done with the time left at this call's step rate, and
+    for runs with a budget in steps (batch PPO) the steps done with theirs (a population
+    finishes its runs together, so the run count alone stays at 0 for most of a task)."""
 
     BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
     """tqdm's default bar without its own time left and rate ("<6:32:04, 811.18s/run"):
@@ -113,6 +120,7 @@ class GridProgress:
         budgets: list[int | None] | None = None,
         file: Any = None,
         clock: Callable[[], float] = time.perf_counter,
+        step_budgets: list[int | None] | None = None,
     ) -> None:
         self.bar: Any = None
         self.initial, self.runs = done, runs
@@ -121,6 +129,14 @@ class GridProgress:
             (r, b) for r, b in zip(runs, budgets or [None] * len(runs), strict=True) if b
         ]
         self.episodes_total = sum(b for _, b in self.episode_runs)
+        self.step_runs = [
+            (r, b) for r, b in zip(runs, step_budgets or [None] * len(runs), strict=True) if b
+        ]
+        """The runs with a budget in steps (batch PPO), counted by :meth:`count_steps`."""
+        self.steps_total = sum(b for _, b in self.step_runs)
+        self.step_base: dict[Path, int] | None = None
+        self.step_history: list[tuple[float, int]] = []
+        self.steps_text = ""
         self.clock = clock
         self.since = time.time()
         """Wall time of the bar's start: live progress written before it is an earlier
@@ -204,6 +220,33 @@ class GridProgress:
             steps_left += budget * sum(guess) / len(guess)
         return steps_left * (t_now - start[0]) / (g_now - start[1])
 
+    def count_steps(self) -> str:
+        """``"X/Y, left~T"`` for the runs with a budget in steps (batch PPO): the steps
+        done (live, else those checkpointed; a finished run's whole budget) and the time
+        left at the rate of this call's steps of the last :attr:`RATE_WINDOW_S` seconds,
+        from when work began."""
+        steps = {r: self._run_steps(r, b) for r, b in self.step_runs}
+        if self.step_base is None:
+            self.step_base = dict(steps)
+        gained = sum(max(0, n - self.step_base[r]) for r, n in steps.items())
+        now = self.clock()
+        recent = [(t, g) for t, g in self.step_history if now - t <= self.RATE_WINDOW_S]
+        self.step_history = [*recent, (now, gained)]
+        done = sum(steps.values())
+        text = f"{_amount(done)}/{_amount(self.steps_total)}"
+        start = [(t, g) for t, g in self.step_history if g == self.step_history[0][1]][-1]
+        if gained > start[1] and done < self.steps_total:
+            rate = (gained - start[1]) / (now - start[0])
+            text += f", left~{_minutes((self.steps_total - done) / rate)}"
+        return text
+
+    def _run_steps(self, run: Path, budget: int) -> int:
+        """A step-budget run's steps so far, at most its budget."""
+        if (run / "done.json").exists():
+            return budget
+        live = read_live(run, self.since)
+        return min(budget, live["total_steps"] if live is not None else _from_csv(run)[1])
+
     def poll(self, jobs_running: int, results: list[dict[str, Any]]) -> None:
         """Count finished runs on disk and failed ones in the jobs' results; show the jobs
         still running and, every :attr:`count_every` seconds, the episodes done. On a
@@ -217,12 +260,16 @@ class GridProgress:
         done = sum((r / "done.json").exists() for r in self.runs)
         self.failed = sum(res["status"] == "failed" for res in results)
         self.bar.n = self.initial + done + self.failed
-        if self.episode_runs and self.clock() - self.t_counted >= self.count_every:
-            self.episodes_text = self.count_episodes()
+        due = self.clock() - self.t_counted >= self.count_every
+        if (self.episode_runs or self.step_runs) and due:
+            self.episodes_text = self.count_episodes() if self.episode_runs else ""
+            self.steps_text = self.count_steps() if self.step_runs else ""
             self.t_counted = self.clock()
         postfix: dict[str, Any] = {"jobs": jobs_running, "failed": self.failed}
         if self.episodes_text:
             postfix["episodes"] = self.episodes_text
+        if self.steps_text:
+            postfix["steps"] = self.steps_text
         self.bar.set_postfix(postfix, refresh=False)
         shown = (self.bar.n, *postfix.items())
         if self.redraw_every_poll or shown != self.shown:

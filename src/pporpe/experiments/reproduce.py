@@ -220,7 +220,10 @@ def reproduce(
     listed = spec if whole is None else whole  # a chunk lists the whole grid
     listing_changed = write_grid_summary(out_dir, listed)
     budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
-    bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets)
+    step_budgets = [None if b else getattr(cfg, "total_steps", None) for b, (_, cfg) in
+                    zip(budgets, todo, strict=True)]  # fmt: skip
+    bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets,
+                       step_budgets=step_budgets)  # fmt: skip
     results = _run_jobs(jobs, backend, n_workers, address, bar, seconds, stop)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
