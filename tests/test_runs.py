@@ -326,17 +326,37 @@ def test_a_registered_kind_trains_resumes_and_runs_in_a_grid(tmp_path: Path) -> 
     assert policy.config == CountConfig(seed=7) and policy.act(None).shape == (1,)
 
 
+def three_runs(root: Path) -> list[tuple[Any, Path]]:
+    """Runs of 6, 2 and 4 episodes of the count kind, in folders r1, r2, r3 of ``root``."""
+    cfgs = [CountConfig(seed=1, episodes=6), CountConfig(seed=2, episodes=2),
+            CountConfig(seed=3, episodes=4)]  # fmt: skip
+    return [(c, root / f"r{c.seed}") for c in cfgs]
+
+
+class _Stop(RuntimeError):
+    pass
+
+
+def stop_at_record(root: Path, records: int) -> None:
+    """:func:`three_runs` through two slots of a queue homed in ``root``, stopped by an
+    exception at its ``records``-th episode record (a crash between two checkpoints)."""
+    seen = []
+
+    def stop_late(rec: Any) -> None:
+        seen.append(rec)
+        if len(seen) == records:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        run_queue(three_runs(root), capacity=2, home=root, on_episode=stop_late)
+
+
 def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -> None:
     """Three runs through two slots: the short run's slot takes the queued one; a queue
     stopped mid-way resumes from population.json and each run's checkpoint to the records
     of the uninterrupted queue."""
     register_kind(CountKind())
-    cfgs = [CountConfig(seed=1, episodes=6), CountConfig(seed=2, episodes=2),
-            CountConfig(seed=3, episodes=4)]  # fmt: skip
-
-    def queue(root: Path) -> list[tuple[Any, Path]]:
-        return [(c, root / f"r{c.seed}") for c in cfgs]
-
+    queue = three_runs
     full = run_queue(queue(tmp_path / "a"), capacity=2, home=tmp_path / "a")
     assert [len(r.records) for r in full] == [6, 2, 4] and all(r.error is None for r in full)
     pop = json.loads((tmp_path / "a" / "population.json").read_text())
@@ -344,18 +364,7 @@ def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -
     # the third run started in slot 1 after the second finished at its 2nd episode
     assert [r.total_steps for r in full] == [18, 6, 12]
 
-    class Stop(RuntimeError):
-        pass
-
-    seen = []
-
-    def stop_late(rec: Any) -> None:
-        seen.append(rec)
-        if len(seen) == 9:
-            raise Stop
-
-    with pytest.raises(Stop):
-        run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b", on_episode=stop_late)
+    stop_at_record(tmp_path / "b", 9)
     pop = json.loads((tmp_path / "b" / "population.json").read_text())
     assert pop["slots"] == ["r1", "r3"]  # relative to the home folder
     # resumed from another place (another checkout, another machine): nothing is lost
@@ -587,31 +596,14 @@ def test_cpu_time_is_each_runs_share_of_the_steps_and_resumes_with_its_work(
     register_kind(CountKind())
     clock = iter(range(10**6))
     monkeypatch.setattr(loop_module.time, "process_time", lambda: float(next(clock)))
-    cfgs = [CountConfig(seed=1, episodes=6), CountConfig(seed=2, episodes=2),
-            CountConfig(seed=3, episodes=4)]  # fmt: skip
-
-    def queue(root: Path) -> list[tuple[Any, Path]]:
-        return [(c, root / f"r{c.seed}") for c in cfgs]
-
-    full = run_queue(queue(tmp_path / "a"), capacity=2, home=tmp_path / "a")
+    full = run_queue(three_runs(tmp_path / "a"), capacity=2, home=tmp_path / "a")
     assert [r.cpu_time for r in full] == [3.0, 1.0, 2.0]
     done = [json.loads((r.run_dir / "done.json").read_text()) for r in full]
     assert [d["cpu_time"] for d in done] == [3.0, 1.0, 2.0]
     assert all(d["eval_cpu_time"] == 1.0 for d in done)  # two readings around the tests
 
-    class Stop(RuntimeError):
-        pass
-
-    seen = []
-
-    def stop_late(rec: Any) -> None:
-        seen.append(rec)
-        if len(seen) == 9:
-            raise Stop
-
-    with pytest.raises(Stop):
-        run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b", on_episode=stop_late)
-    resumed = run_queue(queue(tmp_path / "b"), capacity=2, home=tmp_path / "b")
+    stop_at_record(tmp_path / "b", 9)
+    resumed = run_queue(three_runs(tmp_path / "b"), capacity=2, home=tmp_path / "b")
     assert [r.resumed_from for r in resumed] == [4, 2, 2]  # resumed mid-way
     assert [r.cpu_time for r in resumed] == [3.0, 1.0, 2.0]
 
