@@ -188,7 +188,7 @@ def test_what_ran_names_a_batch_grids_step_budget(tmp_path: Path) -> None:
 
 
 def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> None:
-    """CPU hours of training and of the test episodes and wall hours, summed over the
+    """CPU hours of training and of the test episodes, summed over the
     finished runs whose done.json records CPU time; the others counted apart; no line
     when none records it (an older grid's report is unchanged)."""
     from pporpe.experiments.results import compute_line
@@ -207,7 +207,7 @@ def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> 
     line = compute_line(tmp_path, grid)
     assert line is not None
     assert line.startswith("- Compute: 1.60 CPU hours over the 2 finished runs that record it")
-    assert "(1.50 training, 0.10 test episodes; training wall time 2.50 h" in line
+    assert "(1.50 training, 0.10 test episodes; 1 of these runs" in line
     assert "; 1 of these runs counted from a resume part-way" in line
     assert "; 1 other finished run without the record)" in line
     assert compute_line(tmp_path, {"runs": runs[2:]}) is None

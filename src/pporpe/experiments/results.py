@@ -79,9 +79,9 @@ def load_results(out: str | Path) -> list[Cell]:
 def compute_line(root: Path, grid: dict[str, Any]) -> str | None:
     """What the grid's finished runs record of their compute in ``done.json``: the CPU hours
     of training (``cpu_time``: each run's share of its process's CPU time) and of the test
-    episodes (``eval_cpu_time``), summed over the runs that record them, and their wall
-    hours of training; None when no finished run records CPU time (runs finished before
-    pporpe recorded it). Work lost to a kill (since the last checkpoint) is not counted, nor
+    episodes (``eval_cpu_time``), summed over the runs that record them (not their wall
+    times: a population's members share theirs); None when no finished run records CPU
+    time (runs finished before pporpe recorded it). Work lost to a kill (since the last checkpoint) is not counted, nor
     the CPU time of a run before it resumed from a checkpoint without the record
     (``cpu_time_since`` > 0: counted as part-way)."""
     done = [root / r["key"] / "done.json" for r in grid["runs"]]
@@ -91,10 +91,9 @@ def compute_line(root: Path, grid: dict[str, Any]) -> str | None:
         return None
     train = sum(float(d["cpu_time"]) for d in timed) / 3600
     test = sum(float(d.get("eval_cpu_time", 0.0)) for d in timed) / 3600
-    wall = sum(float(d.get("train_time", 0.0)) for d in timed) / 3600
     older = len(stats) - len(timed)
     partial = sum(int(d.get("cpu_time_since", 0)) > 0 for d in timed)
-    notes = [f"training wall time {wall:.2f} h, summed over runs"]
+    notes = [f"{train:.2f} training, {test:.2f} test episodes"]
     if partial:
         notes.append(f"{partial} of these runs counted from a resume part-way, their earlier "
                      "CPU time unrecorded")  # fmt: skip
@@ -102,7 +101,7 @@ def compute_line(root: Path, grid: dict[str, Any]) -> str | None:
         notes.append(f"{older} other finished run{'s' if older > 1 else ''} without the record")
     return (
         f"- Compute: {train + test:.2f} CPU hours over the {len(timed)} finished runs that "
-        f"record it ({train:.2f} training, {test:.2f} test episodes; {'; '.join(notes)}). "
+        f"record it ({'; '.join(notes)}). "
         "A run's CPU time is its share of its process's: a population's split evenly between "
         "its busy members."
     )
