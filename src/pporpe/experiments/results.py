@@ -81,9 +81,9 @@ def compute_line(root: Path, grid: dict[str, Any]) -> str | None:
     of training (``cpu_time``: each run's share of its process's CPU time) and of the test
     episodes (``eval_cpu_time``), summed over the runs that record them (not their wall
     times: a population's members share theirs); None when no finished run records CPU
-    time (runs finished before pporpe recorded it). Work lost to a kill (since the last checkpoint) is not counted, nor
-    the CPU time of a run before it resumed from a checkpoint without the record
-    (``cpu_time_since`` > 0: counted as part-way)."""
+    time (runs finished before pporpe recorded it). Work lost to a kill (since the last
+    checkpoint) is not counted, nor the CPU time of a run before it resumed from a
+    checkpoint without the record (``cpu_time_since`` > 0: counted as part-way)."""
     done = [root / r["key"] / "done.json" for r in grid["runs"]]
     stats = [json.loads(f.read_text()) for f in done if f.exists()]
     timed = [d for d in stats if "cpu_time" in d]
