@@ -216,6 +216,14 @@ def run_sb3(args: argparse.Namespace) -> int:
     return 0
 
 
+def repo_relative(path: Path) -> str:
+    """``path`` relative to the repository where it lies inside it, else as given."""
+    try:
+        return str(path.resolve().relative_to(HERE.parent.resolve()))
+    except ValueError:
+        return str(path)
+
+
 def export_pporpe(args: argparse.Namespace) -> int:
     """The batch study's finished PPO runs of a task as result files."""
     from _common import write_json
@@ -233,7 +241,7 @@ def export_pporpe(args: argparse.Namespace) -> int:
         cpu = {"cpu_s": done["cpu_time"]} if whole else {}
         write_json(result_path(args.root, "pporpe", args.task, seed),
                    {"implementation": "pporpe", "task": args.task, "seed": seed,
-                    "total_steps": done["total_steps"], "run_folder": str(run),
+                    "total_steps": done["total_steps"], "run_folder": repo_relative(run),
                     "episode_steps": [r.total_steps for r in records],
                     "returns": [r.ret for r in records],
                     "steps_per_s": done["total_steps"] / done["train_time"], **cpu})  # fmt: skip
