@@ -323,6 +323,10 @@ def curve(run: dict[str, Any], grid: np.ndarray) -> np.ndarray:
     return out
 
 
+MIN_COMPARED = 2
+"""Seeds each side needs before P(pporpe > rival) is given (one seed has no spread)."""
+
+
 def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
     """One task's side by side: the last-100 means with CIs and P(pporpe > CleanRL)."""
     from pporpe.experiments.stats import bootstrap_ci, probability_of_improvement_ci
@@ -340,7 +344,7 @@ def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
             row[f"{impl}_steps_per_cpu_s"] = float(np.median(rates))
     mine = [r["last100_mean"] for r in groups["pporpe"]]
     for rival, key in (("cleanrl", "p_pporpe_better"), ("sb3", "p_pporpe_better_sb3")):
-        if rival in groups:
+        if rival in groups and min(len(groups[rival]), len(mine)) >= MIN_COMPARED:
             theirs = [r["last100_mean"] for r in groups[rival]]
             row[key] = probability_of_improvement_ci(mine, theirs).as_dict()
     return row

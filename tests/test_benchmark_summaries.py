@@ -560,6 +560,8 @@ def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
     assert row["pporpe"]["value"] == pytest.approx(13 / 3)
     line = cleanrl.summary_lines([row])[2]
     assert "p_pporpe_better_sb3" not in row and "| - | - | 1001 / - / - |" in line
+    one = cleanrl.task_row([*runs, run("sb3", 0, 4.0)], "Hopper-v4")
+    assert one is not None and "p_pporpe_better_sb3" not in one  # one seed: no P
     runs += [run("sb3", s, v) for s, v in enumerate([4.0, 4.0, 7.0])]
     row = cleanrl.task_row(runs, "Hopper-v4")
     assert row is not None and row["seeds"] == {"pporpe": 3, "cleanrl": 2, "sb3": 3}
