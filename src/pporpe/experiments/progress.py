@@ -87,6 +87,24 @@ def _amount(x: float) -> str:
     return f"{x / 1e3:.0f}k" if x >= 1e4 else f"{x:.0f}"
 
 
+def _windowed(
+    history: list[tuple[float, int]], now: float, gained: int, window: float
+) -> list[tuple[float, int]]:
+    """``history`` of ``(time, steps gained)`` counts without those older than ``window``
+    seconds, with this count ``(now, gained)`` appended."""
+    return [*[(t, g) for t, g in history if now - t <= window], (now, gained)]
+
+
+def _seconds_per_step(history: list[tuple[float, int]]) -> float | None:
+    """Seconds per step over ``history`` (:func:`_windowed`), from its last count before
+    work began in it (a worker's start-up is no work); None without steps gained since."""
+    t_now, g_now = history[-1]
+    start = [(t, g) for t, g in history if g == history[0][1]][-1]
+    if g_now <= start[1]:
+        return None
+    return (t_now - start[0]) / (g_now - start[1])
+
+
 def _minutes(seconds: float) -> str:
     """``"40 s"`` under a minute, ``"12 min"``, ``"3.4 h"`` from an hour on."""
     if seconds < 60:
@@ -185,9 +203,7 @@ class GridProgress:
         if self.base is None:
             self.base = {r: p.steps for r, p in progress.items()}
         gained = sum(max(0, p.steps - self.base[r]) for r, p in progress.items())
-        now = self.clock()
-        recent = [(t, g) for t, g in self.history if now - t <= self.RATE_WINDOW_S]
-        self.history = [*recent, (now, gained)]
+        self.history = _windowed(self.history, self.clock(), gained, self.RATE_WINDOW_S)
         text = f"{n}/{self.episodes_total}"
         left = self.time_left(progress)
         if left is not None and n < self.episodes_total:
@@ -200,9 +216,8 @@ class GridProgress:
         start-up is no work).
         A run with no episode yet has its whole budget left at the recent episode length
         of the other runs of its task (or of all runs); None without a rate or a length."""
-        t_now, g_now = self.history[-1]
-        start = [(t, g) for t, g in self.history if g == self.history[0][1]][-1]
-        if g_now <= start[1]:
+        per_step = _seconds_per_step(self.history)
+        if per_step is None:
             return None
         lengths: dict[str, list[float]] = {}
         for run, p in progress.items():
@@ -218,7 +233,7 @@ class GridProgress:
             if not guess:
                 return None
             steps_left += budget * sum(guess) / len(guess)
-        return steps_left * (t_now - start[0]) / (g_now - start[1])
+        return steps_left * per_step
 
     def count_steps(self) -> str:
         """``"X/Y, left~T"`` for the runs with a budget in steps (batch PPO): the steps
@@ -229,15 +244,12 @@ class GridProgress:
         if self.step_base is None:
             self.step_base = dict(steps)
         gained = sum(max(0, n - self.step_base[r]) for r, n in steps.items())
-        now = self.clock()
-        recent = [(t, g) for t, g in self.step_history if now - t <= self.RATE_WINDOW_S]
-        self.step_history = [*recent, (now, gained)]
+        self.step_history = _windowed(self.step_history, self.clock(), gained, self.RATE_WINDOW_S)
         done = sum(steps.values())
         text = f"{_amount(done)}/{_amount(self.steps_total)}"
-        start = [(t, g) for t, g in self.step_history if g == self.step_history[0][1]][-1]
-        if gained > start[1] and done < self.steps_total:
-            rate = (gained - start[1]) / (now - start[0])
-            text += f", left~{_minutes((self.steps_total - done) / rate)}"
+        per_step = _seconds_per_step(self.step_history)
+        if per_step is not None and done < self.steps_total:
+            text += f", left~{_minutes((self.steps_total - done) * per_step)}"
         return text
 
     def _run_steps(self, run: Path, budget: int) -> int:
