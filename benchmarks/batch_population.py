@@ -33,17 +33,17 @@ and its ratio is taken against their mean (the load of the moment; the cores are
     python benchmarks/batch_population.py [--ks 1 4 10 30] [--rounds 3] [--steps 200]
         [--parts options runs] [--note "what shared the cores"] [--out FILE]
 
-Conclusion (benchmarks/results/batch_population.json, docs/batch.md; 2 shared cores, load
-average 3-5, Xeon with AVX-512): per minibatch step ``stacked`` costs 485 µs per member at
-K = 10 against 2145 for ``separate`` (4.4x; 348 against 2328 at K = 30, 6.7x); ``vmap``
-costs 863 (2.5x) and gives other bits than a run alone (its batching rules pick other
-kernels, and it has no per-layer fallback); ``stacked-bmm`` is 11-15% cheaper than
-``stacked`` and not bit for bit. The population uses ``stacked``: bit for bit a run alone
-for about a tenth more. Whole Hopper runs: K = 10 trains 2.8x the member-steps/s of a run
-alone (2.7-3.1x over the rounds), K = 30 3.6x. Of K = 10's 411 µs per member-step, 172
-are the environments' own step (the ``envs`` floor), about 150 the rest of the rollout
-(some 130 small operations per step, 2K of them member by member: the noise draws and the
-two small output layers) and 89 the update.
+Conclusion (benchmarks/results/batch_population.json, docs/batch.md; 2 cores, every other
+job paused, Xeon with AVX-512): per minibatch step ``stacked`` costs 218 µs per member at
+K = 10 against 953 for ``separate`` (4.4x; 139 against 968 at K = 30, 7.0x); ``vmap``
+costs 388 and gives other bits than a run alone (its batching rules pick other kernels,
+and it has no per-layer fallback); ``stacked-bmm`` is 12% cheaper than ``stacked`` and not
+bit for bit. The population uses ``stacked``: bit for bit a run alone for about a tenth
+more. Whole Hopper runs (the environment stepped by :mod:`pporpe.mujoco_step`): K = 10
+trains 2.77x the member-steps/s of a run alone (2.73-2.78 over the rounds), K = 30 3.55x.
+Of K = 10's 174 µs per member-step, 82 are the environments' own step (the ``envs``
+floor), 50 the rest of the rollout (some 130 small operations per step, 2K of them member
+by member: the noise draws and the two small output layers) and 42 the update.
 """
 
 from __future__ import annotations

@@ -981,16 +981,76 @@ def population_run_table(data: dict[str, Any]) -> list[str]:
         rows.append([name, f"{r['member_steps_per_s']:.0f}", ratio, cost])
     head = ["", "member-steps/s", "against a run alone (rounds)",
             "rollout + update, µs per member-step"]  # fmt: skip
-    return table(head, rows)
+    return [*table(head, rows), "", *population_cost_lines(data)]
+
+
+def population_cost_lines(data: dict[str, Any]) -> list[str]:
+    """Where the K of the environments' row spends a member-step, and what the 3x target
+    (K = 10 against a run alone) would take."""
+    runs = {r["variant"]: r for r in data["runs"]}
+    envs = runs["envs"]
+    pop, alone = runs[f"K={envs['members']}"], runs["alone"]
+    total = pop["us_per_member_step"]
+    env, rollout = envs["us_per_member_step"], pop["rollout_us_per_member_step"]
+    lines = [
+        f"Of K = {envs['members']}'s {total:.0f} µs per member-step, {env:.0f} are the "
+        f"environments' own step (the last row), {rollout - env:.0f} the rest of the rollout "
+        "(some 130 small operations per step, 2K of them member by member: the noise draws "
+        "from each member's own generator and the two small output layers, which no batched "
+        f"form computes with a run alone's bits) and {pop['update_us_per_member_step']:.0f} "
+        "the update."
+    ]
+    if envs["members"] == 10 and pop["ratio_to_alone"] < 3:
+        need = total - alone["us_per_member_step"] / 3
+        lines[0] += (
+            f" K = 10 at 3x a run alone would need {need:.0f} µs less per member-step "
+            "from the population's own work."
+        )
+    return lines
 
 
 def with_population_tables(root: Path) -> str:
     """docs/batch.md with the two tables of the batch population's benchmark rewritten
-    (the first pair of markers: the options; the second: whole runs)."""
+    (the first pair of markers: where it ran and the options; the second: whole runs), and
+    the table of the MuJoCo step's benchmark."""
     data = read_json(root, "benchmarks/results/batch_population.json")
     text = (root / "docs" / "batch.md").read_text(encoding="utf-8")
-    blocks = [population_option_table(data), population_run_table(data)]
-    return rewrite_blocks(text, POPULATION_START, POPULATION_END, blocks, "docs/batch.md")
+    measured = [machine_line(data["machine"], data["command"].split(" --note")[0])]
+    if data.get("note"):
+        measured.append(f"What shared the cores: {data['note']}.")
+    options = [*measured, "", *population_option_table(data)]
+    blocks = [options, population_run_table(data)]
+    text = rewrite_blocks(text, POPULATION_START, POPULATION_END, blocks, "docs/batch.md")
+    step = read_json(root, "benchmarks/results/mujoco_step.json")
+    step_block = [machine_line(step["machine"], step["command"].split(" --note")[0])]
+    if step.get("note"):
+        step_block.append(f"What shared the cores: {step['note']}.")
+    step_block += ["", *mujoco_step_table(step)]
+    return rewrite_blocks(text, MUJOCO_STEP_START, MUJOCO_STEP_END, [step_block],
+                          "docs/batch.md")  # fmt: skip
+
+
+MUJOCO_STEP_START = (
+    "<!-- mujoco step: written by python docs/generate.py from "
+    "benchmarks/results/mujoco_step.json; edit the script, not here -->"
+)
+MUJOCO_STEP_END = "<!-- end of mujoco step -->"
+
+
+def mujoco_step_table(data: dict[str, Any]) -> list[str]:
+    """Per -v4 task: µs per step by pporpe's step, Gymnasium's and the MuJoCo calls alone,
+    the Python around the physics in each, and whether the identity held."""
+    rows = [
+        [task, f"{r['lean_us']:.0f}", f"{r['reference_us']:.0f}", f"{r['physics_us']:.0f}",
+         f"{r['lean_over_reference']:.2f}",
+         f"{r['python_us_lean']:.0f} / {r['python_us_reference']:.0f}",
+         f"{'yes' if r['identical'] else 'NO'} ({r['steps']:,} steps, {r['resets']:,} resets)"]
+        for task, r in data["tasks"].items()
+    ]  # fmt: skip
+    head = ["task", "pporpe's step", "Gymnasium's step", "MuJoCo calls alone",
+            "pporpe / Gymnasium", "Python around them, pporpe / Gymnasium",
+            "the same bit for bit"]  # fmt: skip
+    return table(head, rows, ["---", *["---:"] * 5, "---"])
 
 
 PAGES: dict[str, Callable[[Path], str]] = {

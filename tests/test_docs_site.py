@@ -29,6 +29,7 @@ SOURCES = [
     "docs/run-folders.md",
     "docs/batch.md",
     "benchmarks/results/batch_population.json",
+    "benchmarks/results/mujoco_step.json",
     "src/pporpe/runs/logger.py",
     "src/pporpe/runs/kinds.py",
 ]

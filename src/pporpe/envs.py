@@ -32,6 +32,10 @@ computed from a few batched PyBullet calls, bit for bit the same numbers at abou
 speed. ``make_env(..., bullet_step="reference")``, or the environment variable
 ``PPORPE_BULLET_STEP=reference`` for a whole process (``pporpe train``, a grid's workers),
 builds pybullet_envs_gymnasium's own step instead, to check a result against it.
+Gymnasium's -v4 locomotion tasks (Hopper, Walker2d, HalfCheetah, Ant) are stepped the same
+way by :mod:`pporpe.mujoco_step`: Gymnasium's classes with a step that computes the same
+numbers with less Python; ``mujoco_step="reference"`` or ``PPORPE_MUJOCO_STEP=reference``
+builds Gymnasium's own.
 """
 
 from __future__ import annotations
@@ -56,6 +60,8 @@ __all__ = [
     "ALIASES",
     "BULLET_STEPS",
     "MUJOCO_INSTALL",
+    "MUJOCO_LEAN_ENTRY_POINTS",
+    "MUJOCO_STEPS",
     "GymnasiumWarning",
     "MuJoCoWarning",
     "QuietBulletStart",
@@ -63,6 +69,7 @@ __all__ = [
     "bullet_step_choice",
     "env_spec_summary",
     "make_env",
+    "mujoco_step_choice",
     "resolve_env_id",
 ]
 
@@ -88,6 +95,21 @@ MUJOCO_INSTALL = 'pip install -c constraints.txt -e ".[mujoco]"'
 one place the error of a MuJoCo task without MuJoCo takes it from."""
 
 _MUJOCO_ENTRY_POINTS = "gymnasium.envs.mujoco"
+
+MUJOCO_STEPS = ("lean", "reference")
+"""How Gymnasium's -v4 locomotion tasks are stepped: ``"lean"`` (pporpe's step,
+:mod:`pporpe.mujoco_step`, the default) or ``"reference"`` (Gymnasium's)."""
+
+MUJOCO_STEP_VARIABLE = "PPORPE_MUJOCO_STEP"
+"""The environment variable that sets the default of ``make_env``'s ``mujoco_step``."""
+
+MUJOCO_LEAN_ENTRY_POINTS: dict[str, str] = {
+    "Hopper-v4": "pporpe.mujoco_step:HopperLeanEnv",
+    "Walker2d-v4": "pporpe.mujoco_step:Walker2dLeanEnv",
+    "HalfCheetah-v4": "pporpe.mujoco_step:HalfCheetahLeanEnv",
+    "Ant-v4": "pporpe.mujoco_step:AntLeanEnv",
+}
+"""The Gymnasium ids that :mod:`pporpe.mujoco_step` steps, and its classes for them."""
 
 
 def _missing_dependency(env_id: str, entry_point: Any, exc: Exception) -> ImportError:
@@ -195,6 +217,19 @@ def bullet_step_choice(bullet_step: str | None = None) -> str:
     return bullet_step
 
 
+def mujoco_step_choice(mujoco_step: str | None = None) -> str:
+    """The step implementation for the MuJoCo -v4 tasks: ``mujoco_step``, else the
+    environment variable ``PPORPE_MUJOCO_STEP``, else ``"lean"``; a value outside
+    :data:`MUJOCO_STEPS` raises a :class:`ValueError` naming where it came from."""
+    where = "mujoco_step"
+    if mujoco_step is None:
+        mujoco_step = os.environ.get(MUJOCO_STEP_VARIABLE) or "lean"
+        where = MUJOCO_STEP_VARIABLE
+    if mujoco_step not in MUJOCO_STEPS:
+        raise ValueError(f"{where} must be one of {', '.join(MUJOCO_STEPS)}, not {mujoco_step!r}")
+    return mujoco_step
+
+
 def _bullet_spec(env_id: str, bullet_step: str) -> Any:
     """The id's registered spec, with pporpe's step as its entry point where it has one."""
     from .bullet_step import BATCHED_ENTRY_POINTS
@@ -206,7 +241,11 @@ def _bullet_spec(env_id: str, bullet_step: str) -> Any:
 
 
 def make_env(
-    name: str, seed: int | None = None, bullet_step: str | None = None, **kwargs: Any
+    name: str,
+    seed: int | None = None,
+    bullet_step: str | None = None,
+    mujoco_step: str | None = None,
+    **kwargs: Any,
 ) -> gymnasium.Env:
     """Build a continuous-control environment by alias or Gymnasium id.
 
@@ -220,6 +259,11 @@ def make_env(
             same numbers bit for bit, the first about twice as fast. Default: the
             environment variable ``PPORPE_BULLET_STEP``, else ``"batched"``. Other tasks
             ignore it.
+        mujoco_step: for Gymnasium's -v4 locomotion tasks (:data:`MUJOCO_LEAN_ENTRY_POINTS`),
+            ``"lean"`` (pporpe's step, :mod:`pporpe.mujoco_step`) or ``"reference"``
+            (Gymnasium's): the same numbers bit for bit, the first with less Python per
+            step. Default: the environment variable ``PPORPE_MUJOCO_STEP``, else
+            ``"lean"``. Other tasks ignore it.
         **kwargs: passed to ``gymnasium.make`` (e.g. ``render_mode``,
             ``max_episode_steps``).
 
@@ -231,7 +275,8 @@ def make_env(
         nothing.
 
     Raises:
-        ValueError: unknown name; a ``bullet_step`` outside :data:`BULLET_STEPS`; an
+        ValueError: unknown name; a ``bullet_step`` outside :data:`BULLET_STEPS`, a
+            ``mujoco_step`` outside :data:`MUJOCO_STEPS`; an
             action space that is not a ``gymnasium.spaces.Box`` or not 1-D with finite
             bounds; an observation space that is not a 1-D Box.
         ImportError: the task's package is not installed (a MuJoCo task without MuJoCo:
@@ -239,12 +284,17 @@ def make_env(
     """
     env_id = resolve_env_id(name)
     step = bullet_step_choice(bullet_step)
+    lean = mujoco_step_choice(mujoco_step) == "lean"
     entry_point = gymnasium.envs.registry[env_id].entry_point
     spec: Any = env_id
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
         spec = _bullet_spec(env_id, step)
     mujoco_task = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
+    if mujoco_task and lean and env_id in MUJOCO_LEAN_ENTRY_POINTS:
+        spec = dataclasses.replace(
+            gymnasium.envs.registry[env_id], entry_point=MUJOCO_LEAN_ENTRY_POINTS[env_id]
+        )
     try:
         with _mujoco_warnings_once() if mujoco_task else contextlib.nullcontext():
             env = _make_with_plain_warnings(spec, **kwargs)
@@ -295,11 +345,27 @@ class GymnasiumWarning(UserWarning):
     out of date), without the terminal colour codes Gymnasium writes into it."""
 
 
+def _warn_if_out_of_date(env_id: str) -> None:
+    """Gymnasium's deprecation warning for an id with a newer version registered (which
+    ``gymnasium.make`` gives for an id, not for a spec)."""
+    registration = gymnasium.envs.registration
+    ns, name, version = registration.parse_env_id(env_id)
+    latest = registration.find_highest_version(ns, name)
+    if version is not None and latest is not None and latest > version:
+        gymnasium.logger.deprecation(
+            f"The environment {env_id} is out of date. You should consider "
+            f"upgrading to version `v{latest}`."
+        )
+
+
 def _make_with_plain_warnings(spec: Any, **kwargs: Any) -> gymnasium.Env:
     """``gymnasium.make``, its warnings given again as :class:`GymnasiumWarning` in plain
-    text, each message once per process."""
+    text, each message once per process. A spec given as an ``EnvSpec`` (pporpe's step of a
+    task) gets the warning Gymnasium gives its id, that a newer version exists."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        if isinstance(spec, gymnasium.envs.registration.EnvSpec):
+            _warn_if_out_of_date(spec.id)
         env = gymnasium.make(spec, **kwargs)
     for w in caught:
         message = _ANSI_CODES.sub("", str(w.message)).removeprefix("WARN: ")
