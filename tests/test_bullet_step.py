@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pybullet_envs_gymnasium.gym_locomotion_envs import AntBulletEnv, HalfCheetahBulletEnv
+from tiny import same_run_either_way
 
 from pporpe.batch import BatchConfig
 from pporpe.bullet_step import (
@@ -25,7 +26,6 @@ from pporpe.bullet_step import (
 )
 from pporpe.envs import ALIASES, make_env
 from pporpe.online.config import TrainConfig
-from pporpe.runs import train
 
 TASKS = list(ALIASES)
 IDENTITY_STEPS = 5000
@@ -184,13 +184,6 @@ def test_a_bad_bullet_step_is_refused_naming_where_it_came_from(
         make_env("ant")
 
 
-def _records_text(run: Path) -> list[str]:
-    """``episodes.csv`` without its wall-time column (the only one that is not computed)."""
-    lines = (run / "episodes.csv").read_text().splitlines()
-    column = lines[0].split(",").index("wall_time")
-    return [",".join(v for i, v in enumerate(line.split(",")) if i != column) for line in lines]
-
-
 @pytest.mark.parametrize("learner", ["online", "batch"])
 def test_a_halfcheetah_run_is_the_same_with_either_step(
     learner: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -204,11 +197,4 @@ def test_a_halfcheetah_run_is_the_same_with_either_step(
         cfg = BatchConfig(env="halfcheetah", seed=5, n_envs=2, n_steps=512, batch_size=256,
                           n_epochs=2, total_steps=2048, checkpoint_every=1,
                           eval_episodes=1)  # fmt: skip
-    runs = {}
-    for step in ("batched", "reference"):
-        monkeypatch.setenv("PPORPE_BULLET_STEP", step)
-        runs[step] = train(cfg, tmp_path / step, progress=False)
-    a, b = (tmp_path / "batched", tmp_path / "reference")
-    assert _records_text(a) == _records_text(b)
-    assert len(_records_text(a)) >= 3  # a header and two episodes at least
-    assert runs["batched"].evaluation == runs["reference"].evaluation
+    same_run_either_way(cfg, "PPORPE_BULLET_STEP", ("batched", "reference"), tmp_path, monkeypatch)

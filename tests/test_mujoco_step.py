@@ -15,6 +15,8 @@ from hypothesis.extra import numpy as hnp
 
 pytest.importorskip("mujoco")
 
+from tiny import same_run_either_way
+
 from pporpe.batch import BatchConfig
 from pporpe.bullet_step import side_by_side
 from pporpe.envs import MUJOCO_LEAN_ENTRY_POINTS, make_env
@@ -24,7 +26,6 @@ from pporpe.mujoco_step import (
     _inside,
     _sum_of_squares,
 )
-from pporpe.runs import train
 
 TASKS = list(MUJOCO_LEAN_ENTRY_POINTS)
 IDENTITY_STEPS = 4000
@@ -148,14 +149,6 @@ def test_the_control_cost_sum_is_numpys(action: np.ndarray) -> None:
     assert type(ours) is type(theirs) and ours.tobytes() == theirs.tobytes()
 
 
-def _records_text(run: Path, name: str = "episodes.csv") -> list[str]:
-    """A run's ``episodes.csv`` or ``updates.csv`` without its wall-time column (the only one
-    that is not computed)."""
-    lines = (run / name).read_text().splitlines()
-    column = lines[0].split(",").index("wall_time")
-    return [",".join(v for i, v in enumerate(line.split(",")) if i != column) for line in lines]
-
-
 def test_a_hopper_batch_run_is_the_same_with_either_step(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -164,12 +157,4 @@ def test_a_hopper_batch_run_is_the_same_with_either_step(
     cfg = BatchConfig(env="Hopper-v4", seed=5, n_envs=2, n_steps=256, batch_size=128,
                       n_epochs=2, total_steps=1024, checkpoint_every=1,
                       eval_episodes=2)  # fmt: skip
-    runs = {}
-    for step in ("lean", "reference"):
-        monkeypatch.setenv("PPORPE_MUJOCO_STEP", step)
-        runs[step] = train(cfg, tmp_path / step, progress=False)
-    a, b = (tmp_path / "lean", tmp_path / "reference")
-    assert _records_text(a) == _records_text(b)
-    assert len(_records_text(a)) >= 3  # a header and two episodes at least
-    assert _records_text(a, "updates.csv") == _records_text(b, "updates.csv")
-    assert runs["lean"].evaluation == runs["reference"].evaluation
+    same_run_either_way(cfg, "PPORPE_MUJOCO_STEP", ("lean", "reference"), tmp_path, monkeypatch)

@@ -6,6 +6,7 @@ Small networks keep a test fast; a test that needs other sizes passes them as ke
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -67,3 +68,31 @@ def tiny_grid_toml(
         '[learner]\nlayers = 1\nunits = 8\n\n[[tasks]]\nenv = "pendulum"\n'
         f"episodes = {episodes}\n"
     )
+
+
+def records_text(run: Path, name: str = "episodes.csv") -> list[str]:
+    """A run's ``episodes.csv`` or ``updates.csv`` without its wall-time column (the only one
+    that is not computed): what two runs that compute the same numbers share line for line."""
+    lines = (run / name).read_text().splitlines()
+    column = lines[0].split(",").index("wall_time")
+    return [",".join(v for i, v in enumerate(line.split(",")) if i != column) for line in lines]
+
+
+def same_run_either_way(
+    cfg: Any, variable: str, steps: tuple[str, str], tmp_path: Path, monkeypatch: Any
+) -> None:
+    """Train ``cfg`` once with the environment variable ``variable`` set to each of ``steps``
+    (two implementations of an environment's step) and assert that both runs wrote the same
+    records (``episodes.csv``, and ``updates.csv`` where there is one) and test returns."""
+    from pporpe.runs import train
+
+    runs = {}
+    for step in steps:
+        monkeypatch.setenv(variable, step)
+        runs[step] = train(cfg, tmp_path / step, progress=False)
+    a, b = (tmp_path / step for step in steps)
+    assert records_text(a) == records_text(b)
+    assert len(records_text(a)) >= 3  # a header and two episodes at least
+    if (a / "updates.csv").exists():
+        assert records_text(a, "updates.csv") == records_text(b, "updates.csv")
+    assert runs[steps[0]].evaluation == runs[steps[1]].evaluation

@@ -204,30 +204,30 @@ def resolve_env_id(name: str) -> str:
     )
 
 
+def _step_choice(value: str | None, param: str, variable: str, choices: tuple[str, ...]) -> str:
+    """``value``, else the environment variable ``variable``, else ``choices[0]``; a value
+    outside ``choices`` raises a :class:`ValueError` naming where it came from."""
+    where = param
+    if value is None:
+        value = os.environ.get(variable) or choices[0]
+        where = variable
+    if value not in choices:
+        raise ValueError(f"{where} must be one of {', '.join(choices)}, not {value!r}")
+    return value
+
+
 def bullet_step_choice(bullet_step: str | None = None) -> str:
     """The step implementation for the Bullet tasks: ``bullet_step``, else the environment
     variable ``PPORPE_BULLET_STEP``, else ``"batched"``; a value outside
     :data:`BULLET_STEPS` raises a :class:`ValueError` naming where it came from."""
-    where = "bullet_step"
-    if bullet_step is None:
-        bullet_step = os.environ.get(BULLET_STEP_VARIABLE) or "batched"
-        where = BULLET_STEP_VARIABLE
-    if bullet_step not in BULLET_STEPS:
-        raise ValueError(f"{where} must be one of {', '.join(BULLET_STEPS)}, not {bullet_step!r}")
-    return bullet_step
+    return _step_choice(bullet_step, "bullet_step", BULLET_STEP_VARIABLE, BULLET_STEPS)
 
 
 def mujoco_step_choice(mujoco_step: str | None = None) -> str:
     """The step implementation for the MuJoCo -v4 tasks: ``mujoco_step``, else the
     environment variable ``PPORPE_MUJOCO_STEP``, else ``"lean"``; a value outside
     :data:`MUJOCO_STEPS` raises a :class:`ValueError` naming where it came from."""
-    where = "mujoco_step"
-    if mujoco_step is None:
-        mujoco_step = os.environ.get(MUJOCO_STEP_VARIABLE) or "lean"
-        where = MUJOCO_STEP_VARIABLE
-    if mujoco_step not in MUJOCO_STEPS:
-        raise ValueError(f"{where} must be one of {', '.join(MUJOCO_STEPS)}, not {mujoco_step!r}")
-    return mujoco_step
+    return _step_choice(mujoco_step, "mujoco_step", MUJOCO_STEP_VARIABLE, MUJOCO_STEPS)
 
 
 def _bullet_spec(env_id: str, bullet_step: str) -> Any:

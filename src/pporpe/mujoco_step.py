@@ -95,15 +95,30 @@ class _LeanStep:
     data: Any
     frame_skip: int
     render_mode: str | None
+    _ctrl_cost_weight: float
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)  # the task's own constructor, next in the MRO
+        self._lean_setup()
 
     def _lean_setup(self) -> None:
-        """Read once what the reference reads at every step (call after its constructor)."""
+        """Read once what the reference reads at every step (after its constructor)."""
         self._step_dt = self.model.opt.timestep * self.frame_skip
         self._action_shape = (self.model.nu,)
 
     def _lean(self, action: Any) -> bool:
         """Whether this step is the lean one (else the reference's ``step`` is called)."""
         return self.render_mode != "human" and np.shape(action) == self._action_shape
+
+    def _simulate_forward(self, action: Any) -> tuple[Any, Any, Any]:
+        """Simulate the step of a task rewarded for x velocity: ``(x after, x velocity,
+        control cost)`` as the reference computes them."""
+        qpos = self.data.qpos
+        x_before = qpos[0]
+        self._simulate(action)
+        x_after = qpos[0]
+        ctrl_cost = self._ctrl_cost_weight * _sum_of_squares(action)
+        return x_after, (x_after - x_before) / self._step_dt, ctrl_cost
 
     def _simulate(self, action: Any) -> None:
         """The reference's ``do_simulation`` after its shape check."""
@@ -112,84 +127,67 @@ class _LeanStep:
         mujoco.mj_rnePostConstraint(self.model, self.data)
 
 
-class HopperLeanEnv(_LeanStep, HopperEnv):
-    """Gymnasium's ``Hopper-v4`` with pporpe's step (the same numbers)."""
+class _PlanarWalker(_LeanStep):
+    """The step of a walker in the plane (Hopper, Walker2d): forward velocity, a healthy
+    reward, a control cost, velocities clipped to [-10, 10] in the observation, and the end
+    of the episode when it falls (:meth:`_healthy`, per task)."""
 
-    def __init__(self, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self._lean_setup()
+    _forward_reward_weight: float
+    _healthy_reward: float
+    _terminate_when_unhealthy: bool
+    _exclude_current_positions_from_observation: bool
+
+    def _healthy(self, qpos: np.ndarray, qvel: np.ndarray) -> bool:
+        raise NotImplementedError
 
     def step(self, action: Any) -> StepResult:
         if not self._lean(action):
-            return super().step(action)
+            return super().step(action)  # type: ignore[misc]
         qpos, qvel = self.data.qpos, self.data.qvel
-        x_before = qpos[0]
-        self._simulate(action)
-        x_after = qpos[0]
-        x_velocity = (x_after - x_before) / self._step_dt
-        ctrl_cost = self._ctrl_cost_weight * _sum_of_squares(action)
+        x_after, x_velocity, ctrl_cost = self._simulate_forward(action)
+        healthy = self._healthy(qpos, qvel)
+        unhealthy_ends = self._terminate_when_unhealthy
+        healthy_reward = float(healthy or unhealthy_ends) * self._healthy_reward
+        reward = (self._forward_reward_weight * x_velocity + healthy_reward) - ctrl_cost
+        start = 1 if self._exclude_current_positions_from_observation else 0
+        observation = np.concatenate((qpos[start:], _clip10(qvel)))
+        terminated = (not healthy) if unhealthy_ends else False
+        info = {"x_position": x_after, "x_velocity": x_velocity}
+        return observation, reward, terminated, False, info
+
+
+class HopperLeanEnv(_PlanarWalker, HopperEnv):
+    """Gymnasium's ``Hopper-v4`` with pporpe's step (the same numbers)."""
+
+    def _healthy(self, qpos: np.ndarray, qvel: np.ndarray) -> bool:
+        """``is_healthy``: every state but x and z inside its range, z and the angle too."""
         min_z, max_z = self._healthy_z_range
         min_angle, max_angle = self._healthy_angle_range
-        healthy = (
+        return bool(
             _inside(self._healthy_state_range, np.concatenate((qpos[2:], qvel)))
             and min_z < qpos[1] < max_z
             and min_angle < qpos[2] < max_angle
         )
-        unhealthy_ends = self._terminate_when_unhealthy
-        healthy_reward = float(healthy or unhealthy_ends) * self._healthy_reward
-        reward = (self._forward_reward_weight * x_velocity + healthy_reward) - ctrl_cost
-        start = 1 if self._exclude_current_positions_from_observation else 0
-        observation = np.concatenate((qpos[start:], _clip10(qvel)))
-        terminated = (not healthy) if unhealthy_ends else False
-        info = {"x_position": x_after, "x_velocity": x_velocity}
-        return observation, reward, terminated, False, info
 
 
-class Walker2dLeanEnv(_LeanStep, Walker2dEnv):
+class Walker2dLeanEnv(_PlanarWalker, Walker2dEnv):
     """Gymnasium's ``Walker2d-v4`` with pporpe's step (the same numbers)."""
 
-    def __init__(self, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self._lean_setup()
-
-    def step(self, action: Any) -> StepResult:
-        if not self._lean(action):
-            return super().step(action)
-        qpos, qvel = self.data.qpos, self.data.qvel
-        x_before = qpos[0]
-        self._simulate(action)
-        x_after = qpos[0]
-        x_velocity = (x_after - x_before) / self._step_dt
-        ctrl_cost = self._ctrl_cost_weight * _sum_of_squares(action)
+    def _healthy(self, qpos: np.ndarray, qvel: np.ndarray) -> bool:
+        """``is_healthy``: z and the torso's angle inside their ranges."""
         min_z, max_z = self._healthy_z_range
         min_angle, max_angle = self._healthy_angle_range
-        healthy = (min_z < qpos[1] < max_z) and (min_angle < qpos[2] < max_angle)
-        unhealthy_ends = self._terminate_when_unhealthy
-        healthy_reward = float(healthy or unhealthy_ends) * self._healthy_reward
-        reward = (self._forward_reward_weight * x_velocity + healthy_reward) - ctrl_cost
-        start = 1 if self._exclude_current_positions_from_observation else 0
-        observation = np.concatenate((qpos[start:], _clip10(qvel)))
-        terminated = (not healthy) if unhealthy_ends else False
-        info = {"x_position": x_after, "x_velocity": x_velocity}
-        return observation, reward, terminated, False, info
+        return bool((min_z < qpos[1] < max_z) and (min_angle < qpos[2] < max_angle))
 
 
 class HalfCheetahLeanEnv(_LeanStep, HalfCheetahEnv):
     """Gymnasium's ``HalfCheetah-v4`` with pporpe's step (the same numbers)."""
 
-    def __init__(self, **kwargs: Any) -> None:
-        super().__init__(**kwargs)
-        self._lean_setup()
-
     def step(self, action: Any) -> StepResult:
         if not self._lean(action):
             return super().step(action)
         qpos, qvel = self.data.qpos, self.data.qvel
-        x_before = qpos[0]
-        self._simulate(action)
-        x_after = qpos[0]
-        x_velocity = (x_after - x_before) / self._step_dt
-        ctrl_cost = self._ctrl_cost_weight * _sum_of_squares(action)
+        x_after, x_velocity, ctrl_cost = self._simulate_forward(action)
         forward_reward = self._forward_reward_weight * x_velocity
         start = 1 if self._exclude_current_positions_from_observation else 0
         observation = np.concatenate((qpos[start:], qvel))
@@ -208,7 +206,6 @@ class AntLeanEnv(_LeanStep, AntEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self._lean_setup()
         self._torso = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "torso")
 
     def step(self, action: Any) -> StepResult:
