@@ -230,6 +230,21 @@ def mujoco_step_choice(mujoco_step: str | None = None) -> str:
     return _step_choice(mujoco_step, "mujoco_step", MUJOCO_STEP_VARIABLE, MUJOCO_STEPS)
 
 
+def _spec(env_id: str, bullet_step: str, mujoco_step: str) -> Any:
+    """What ``gymnasium.make`` is given for a registered id: the id itself, or its spec with
+    pporpe's step as the entry point (a Bullet task, PyBullet imported quietly first; a
+    MuJoCo -v4 walker), as ``bullet_step`` and ``mujoco_step`` choose."""
+    entry_point = gymnasium.envs.registry[env_id].entry_point
+    if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
+        _import_pybullet_quietly()
+        return _bullet_spec(env_id, bullet_step)
+    gymnasiums = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
+    if mujoco_step == "lean" and gymnasiums and env_id in MUJOCO_LEAN_ENTRY_POINTS:
+        spec = gymnasium.envs.registry[env_id]
+        return dataclasses.replace(spec, entry_point=MUJOCO_LEAN_ENTRY_POINTS[env_id])
+    return env_id
+
+
 def _bullet_spec(env_id: str, bullet_step: str) -> Any:
     """The id's registered spec, with pporpe's step as its entry point where it has one."""
     from .bullet_step import BATCHED_ENTRY_POINTS
@@ -283,18 +298,9 @@ def make_env(
             :data:`MUJOCO_INSTALL`), saying what to install.
     """
     env_id = resolve_env_id(name)
-    step = bullet_step_choice(bullet_step)
-    lean = mujoco_step_choice(mujoco_step) == "lean"
+    spec = _spec(env_id, bullet_step_choice(bullet_step), mujoco_step_choice(mujoco_step))
     entry_point = gymnasium.envs.registry[env_id].entry_point
-    spec: Any = env_id
-    if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
-        _import_pybullet_quietly()
-        spec = _bullet_spec(env_id, step)
     mujoco_task = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
-    if mujoco_task and lean and env_id in MUJOCO_LEAN_ENTRY_POINTS:
-        spec = dataclasses.replace(
-            gymnasium.envs.registry[env_id], entry_point=MUJOCO_LEAN_ENTRY_POINTS[env_id]
-        )
     try:
         with _mujoco_warnings_once() if mujoco_task else contextlib.nullcontext():
             env = _make_with_plain_warnings(spec, **kwargs)
