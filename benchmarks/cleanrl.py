@@ -328,13 +328,15 @@ MIN_COMPARED = 2
 
 
 def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
-    """One task's side by side: the last-100 means with CIs and P(pporpe > CleanRL)."""
+    """One task's side by side: the last-100 means with CIs and P(pporpe > CleanRL) (where
+    CleanRL ran: a task of the study without CleanRL's runs has pporpe's mean alone, beside
+    CleanRL's published one on the docs page); None without pporpe's runs."""
     from pporpe.experiments.stats import bootstrap_ci, probability_of_improvement_ci
 
     groups = {i: [r for r in runs if r["task"] == task and r["implementation"] == i]
               for i in IMPLEMENTATIONS}  # fmt: skip
     groups = {i: g for i, g in groups.items() if g}
-    if "pporpe" not in groups or "cleanrl" not in groups:
+    if "pporpe" not in groups:
         return None
     row: dict[str, Any] = {"task": task, "seeds": {i: len(g) for i, g in groups.items()}}
     for impl, group in groups.items():
@@ -425,12 +427,11 @@ def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
         rates = " / ".join(f"{row[f'{i}_steps_per_cpu_s']:.0f}"
                            if f"{i}_steps_per_cpu_s" in row else "-"
                            for i in IMPLEMENTATIONS)  # fmt: skip
-        sb3 = fmt(row["sb3"]) if "sb3" in row else "-"
+        means = [fmt(row[i]) if i in row else "-" for i in IMPLEMENTATIONS]
+        p = [fmt_p(row[k]) if k in row else "-" for k in ("p_pporpe_better", "p_pporpe_better_sb3")]
         lines.append(
-            f"| {row['task']} | {seeds} | {fmt(row['pporpe'])} | {fmt(row['cleanrl'])} | "
-            f"{fmt_p(row['p_pporpe_better'])} | {sb3} | "
-            f"{fmt_p(row['p_pporpe_better_sb3']) if 'p_pporpe_better_sb3' in row else '-'} | "
-            f"{rates} |"
+            f"| {row['task']} | {seeds} | {means[0]} | {means[1]} | {p[0]} | {means[2]} | "
+            f"{p[1]} | {rates} |"
         )
     return lines
 

@@ -737,7 +737,8 @@ def cleanrl_rows(data: dict[str, Any]) -> list[Row]:
     for r in data["tasks"]:
         rows.append([
             r["task"], " / ".join(str(r["seeds"].get(i, 0)) for i in impls),
-            ci_text(r["pporpe"]), ci_text(r["cleanrl"]), p_text(r["p_pporpe_better"]),
+            ci_text(r["pporpe"]), ci_text(r["cleanrl"]) if "cleanrl" in r else "-",
+            p_text(r.get("p_pporpe_better")),
             ci_text(r["sb3"]) if "sb3" in r else "-", p_text(r.get("p_pporpe_better_sb3")),
             " / ".join(f"{r[f'{i}_steps_per_cpu_s']:.0f}" if f"{i}_steps_per_cpu_s" in r
                        else "-" for i in impls),

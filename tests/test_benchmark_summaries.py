@@ -542,7 +542,7 @@ def test_cleanrl_output_is_read_and_summed_as_cleanrl_does() -> None:
     assert got[1:].tolist() == [1.0, 2.0, 4.0, 4.0]  # the mean of the episodes ended by then
 
 
-def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
+def test_cleanrl_side_by_side_needs_pporpe_and_gives_p(tmp_path: Path) -> None:
     import cleanrl
 
     def run(impl: str, seed: int, value: float) -> dict[str, Any]:
@@ -552,6 +552,11 @@ def test_cleanrl_side_by_side_needs_both_and_gives_p(tmp_path: Path) -> None:
 
     assert cleanrl.task_row([run("cleanrl", 1, 5.0)], "Hopper-v4") is None
     runs = [run("pporpe", s, v) for s, v in enumerate([3.0, 4.0, 6.0])]
+    alone = cleanrl.task_row(runs, "Hopper-v4")  # a task of the study CleanRL did not run
+    assert alone is not None and alone["seeds"] == {"pporpe": 3}
+    assert "p_pporpe_better" not in alone and "cleanrl" not in alone
+    assert "| 3 / 0 / 0 | 4 [" in cleanrl.summary_lines([alone])[2]
+    assert "| - | - | - | - | 1001 / - / - |" in cleanrl.summary_lines([alone])[2]
     runs += [run("cleanrl", s, v) for s, v in enumerate([2.0, 5.0])]
     row = cleanrl.task_row(runs, "Hopper-v4")
     assert row is not None and row["seeds"] == {"pporpe": 3, "cleanrl": 2}
