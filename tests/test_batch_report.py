@@ -12,7 +12,14 @@ import pytest
 from repo_scripts import docs_generator
 from scipy import stats as sps
 
-from pporpe.experiments.aggregate import aggregate, normalised, pooled_improvement, task_ranges
+from pporpe.experiments.aggregate import (
+    Aggregate,
+    PooledImprovement,
+    aggregate,
+    normalised,
+    pooled_improvement,
+    task_ranges,
+)
 from pporpe.experiments.batch_results import (
     BatchCell,
     BatchRun,
@@ -22,7 +29,8 @@ from pporpe.experiments.batch_results import (
     quarters_by_steps,
     step_mean_return,
 )
-from pporpe.experiments.batch_summary import Comparison, quarter_rows
+from pporpe.experiments.batch_summary import BatchStatistics, Comparison, quarter_rows
+from pporpe.experiments.batch_tables import answer_markdown
 from pporpe.experiments.grid import load_spec
 from pporpe.experiments.report import write_report
 from pporpe.experiments.reproduce import reproduce
@@ -164,6 +172,29 @@ def test_verdicts_of_the_pooled_and_per_task_comparisons_at_their_edges() -> Non
     assert got is not None and got.n == (5, 5) and got.left_out == 1
 
 
+def test_the_answer_groups_the_tasks_by_verdict_and_adds_the_pooled_one() -> None:
+    """The report's answer in words: per claim and rival, the tasks with the same verdict
+    together, then the pooled verdict (only over more than one task)."""
+
+    def comp(task: str, low: float, high: float, rival: str = "ppo") -> Comparison:
+        return Comparison("score", task, "rpe", rival, (10, 10), 0,
+                          Estimate((low + high) / 2, low, high), None)  # fmt: skip
+
+    comparisons = (comp("A", 0.55, 0.9), comp("B", 0.3, 0.7), comp("C", 0.2, 0.7),
+                   comp("A", 0.4, 0.6, "rb"))  # fmt: skip
+    pooled = (PooledImprovement("score", "rpe", "ppo", 3, (10, 10), 0, Estimate(0.6, 0.52, 0.7)),
+              PooledImprovement("score", "rpe", "rb", 1, (10, 10), 0, Estimate(0.5, 0.4, 0.6)))
+    stats = BatchStatistics((), comparisons, (), Aggregate((), pooled))
+    lines = answer_markdown(stats)
+    assert lines[0] == (
+        "- **test score**, against PPO: supported on A; cannot tell at 10 seeds on B, C; "
+        "pooled over the 3 tasks, supported."
+    )
+    assert lines[1] == "- **test score**, against PPO-RB: equivalent on A."  # one task: no pool
+    assert "Does PPO-RPE beat PPO and PPO-RB" in lines[2]
+    assert answer_markdown(BatchStatistics((), (), (), Aggregate((), ()))) == []
+
+
 def test_quarter_rows_average_the_seeds() -> None:
     q1 = QuarterDiagnostics((0.1, 0.2, 0.3, 0.4), (1.0,) * 4, (0.01, math.nan, 0.03, 0.04))
     q2 = QuarterDiagnostics((0.3, 0.4, 0.5, 0.6), (3.0,) * 4, (0.03, math.nan, 0.05, 0.06))
@@ -215,7 +246,8 @@ def test_a_tiny_batch_grid_reports_by_steps_and_over_tasks(tiny_grid: Path) -> N
     out = tiny_grid / "results" / "batch-mujoco"
     assert is_batch_grid(out) and not is_batch_grid(ROOT / "results" / "paper")
     report = (out / "REPORT.md").read_text()
-    for part in ("(batch PPO)", "## Over the tasks", "IQM of the normalised values",
+    for part in ("(batch PPO)", "## The answer", "against PPO: too few seeds on",
+                 "## Over the tasks", "IQM of the normalised values",
                  "P(PPO-RPE > rival), mean over tasks", "## Per task", "last 100 episodes",
                  "mean training return", "approx. KL Q4", "by quarter of steps",
                  "min-max over all the task's finished runs", "pporpe reproduce",

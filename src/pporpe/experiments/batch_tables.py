@@ -18,6 +18,7 @@ from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS
 __all__ = [
     "BATCH_QUARTER_LEGEND",
     "aggregate_markdown",
+    "answer_markdown",
     "batch_report_markdown",
     "batch_summary_markdown",
     "comparison_markdown",
@@ -64,6 +65,41 @@ def _verdict_legend() -> str:
         "the seeds both finished (the verdict says how many other runs were left out); no "
         f"verdict where they share fewer than {MIN_SEEDS}.\n"
     )
+
+
+def short_verdict(verdict: str) -> str:
+    """A verdict without its explanation in brackets: ``cannot tell at 10 seeds``."""
+    return verdict.split(" (")[0]
+
+
+def answer_markdown(stats: BatchStatistics) -> list[str]:
+    """The report's answer in words: per claim and rival, the verdict on each task (tasks
+    with the same verdict together) and pooled over the tasks, read off the tables below."""
+    lines = []
+    for metric in METRICS:
+        for rival in dict.fromkeys(c.rival for c in stats.comparisons):
+            per_task = [c for c in stats.comparisons if c.metric == metric.key and c.rival == rival]
+            if not per_task:
+                continue
+            said: dict[str, list[str]] = {}
+            for c in per_task:
+                said.setdefault(short_verdict(c.verdict), []).append(c.task)
+            parts = [f"{v} on {', '.join(tasks)}" for v, tasks in said.items()]
+            pooled = [p for p in stats.aggregate.improvements
+                      if p.metric == metric.key and p.rival == rival]  # fmt: skip
+            if pooled and pooled[0].tasks > 1:
+                parts.append(f"pooled over the {pooled[0].tasks} tasks, "
+                             f"{short_verdict(pooled[0].verdict)}")  # fmt: skip
+            lines.append(f"- **{metric.name}**, against {_label(rival)}: {'; '.join(parts)}.")
+    if lines:
+        lines.append(
+            "\nDoes PPO-RPE beat PPO and PPO-RB in batch PPO? Each line reads the 95% CI of "
+            "P(PPO-RPE > rival) on every task and pooled over the tasks (the tables below, "
+            "with the rules under them); the test score is the headline claim, the last 100 "
+            "training episodes CleanRL's metric, the mean training return the sample "
+            "efficiency.\n"
+        )
+    return lines
 
 
 def aggregate_markdown(agg: Aggregate) -> list[str]:
@@ -192,6 +228,9 @@ def batch_report_markdown(
     """REPORT.md of a batch grid: what ran, the aggregate over tasks, the per-task tables
     and verdicts, the quarters table and the figures (``notes.md`` of the folder on top)."""
     parts = report_head(root, grid, " (batch PPO)")
+    answer = answer_markdown(stats)
+    if answer:
+        parts += ["## The answer\n", "\n".join(answer)]
     parts += [
         "## What ran\n",
         "\n".join(_what_ran(root, grid, cells)),
