@@ -141,6 +141,7 @@ class _PlanarWalker(_LeanStep):
         raise NotImplementedError
 
     def step(self, action: Any) -> StepResult:
+        """Gymnasium's step of the walker, computed as the module docstring says."""
         if not self._lean(action):
             return super().step(action)  # type: ignore[misc]
         qpos, qvel = self.data.qpos, self.data.qvel
@@ -184,6 +185,7 @@ class HalfCheetahLeanEnv(_LeanStep, HalfCheetahEnv):
     """Gymnasium's ``HalfCheetah-v4`` with pporpe's step (the same numbers)."""
 
     def step(self, action: Any) -> StepResult:
+        """Gymnasium's ``HalfCheetah-v4`` step, computed as the module docstring says."""
         if not self._lean(action):
             return super().step(action)
         qpos, qvel = self.data.qpos, self.data.qvel
@@ -209,6 +211,7 @@ class AntLeanEnv(_LeanStep, AntEnv):
         self._torso = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "torso")
 
     def step(self, action: Any) -> StepResult:
+        """Gymnasium's ``Ant-v4`` step, computed as the module docstring says."""
         if self._use_contact_forces or not self._lean(action):
             return super().step(action)
         qpos, qvel, xpos = self.data.qpos, self.data.qvel, self.data.xpos
