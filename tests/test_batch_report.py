@@ -35,6 +35,8 @@ from pporpe.experiments.grid import load_spec
 from pporpe.experiments.report import write_report
 from pporpe.experiments.reproduce import reproduce
 from pporpe.experiments.stats import Estimate, iqm, stratified_iqm_ci
+from pporpe.experiments.verdicts import short_verdict
+from pporpe.experiments.verdicts import verdict as verdict_of
 from pporpe.runs.logger import EpisodeRecord, LoggedUpdate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -193,6 +195,9 @@ def test_the_answer_groups_the_tasks_by_verdict_and_adds_the_pooled_one() -> Non
     assert lines[1] == "- **test score**, against PPO-RB: equivalent on A."  # one task: no pool
     assert "Does PPO-RPE beat PPO and PPO-RB" in lines[2]
     assert answer_markdown(BatchStatistics((), (), (), Aggregate((), ()))) == []
+    # the short form drops the reason and the seeds left out
+    assert short_verdict(verdict_of(0.52, 0.7, (9, 10), left_out=1)) == "supported"
+    assert short_verdict(verdict_of(0.3, 0.7, (10, 10))) == "cannot tell at 10 seeds"
 
 
 def test_quarter_rows_average_the_seeds() -> None:

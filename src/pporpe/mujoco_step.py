@@ -26,7 +26,7 @@ same operations on values of the same types, in the same order:
   the reference's keys and values.
 
 ``tests/test_mujoco_step.py`` checks observations, rewards, flags, ``info`` and reset
-observations bit for bit over thousands of steps per task; ``benchmarks/mujoco_identity.py``
+observations bit for bit over thousands of steps per task; ``benchmarks/mujoco_step.py``
 over many more, and times both steps side by side.
 
 The step falls back to the reference's own (``super().step``) where it would compute
@@ -99,10 +99,7 @@ class _LeanStep:
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)  # the task's own constructor, next in the MRO
-        self._lean_setup()
-
-    def _lean_setup(self) -> None:
-        """Read once what the reference reads at every step (after its constructor)."""
+        # read once what the reference reads at every step
         self._step_dt = self.model.opt.timestep * self.frame_skip
         self._action_shape = (self.model.nu,)
 

@@ -13,7 +13,7 @@ from .figures import METHOD_LABELS
 from .results import QUARTERS, Cell, compute_line, tasks_of
 from .stats import N_RESAMPLES, Estimate
 from .tables import quarter_markdown, report_head
-from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS
+from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS, short_verdict
 
 __all__ = [
     "BATCH_QUARTER_LEGEND",
@@ -65,11 +65,6 @@ def _verdict_legend() -> str:
         "the seeds both finished (the verdict says how many other runs were left out); no "
         f"verdict where they share fewer than {MIN_SEEDS}.\n"
     )
-
-
-def short_verdict(verdict: str) -> str:
-    """A verdict without its explanation in brackets: ``cannot tell at 10 seeds``."""
-    return verdict.split(" (")[0]
 
 
 def answer_markdown(stats: BatchStatistics) -> list[str]:

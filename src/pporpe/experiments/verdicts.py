@@ -34,6 +34,7 @@ __all__ = [
     "EQUIVALENCE_BOUNDS",
     "MIN_SEEDS",
     "claims_markdown",
+    "short_verdict",
     "verdict",
 ]
 
@@ -95,6 +96,12 @@ def verdict(low: float, high: float, n: tuple[int, int], left_out: int = 0) -> s
         runs = "run" if left_out == 1 else "runs"
         said += f", on the {min(n)} seeds both finished ({left_out} other {runs} left out)"
     return said
+
+
+def short_verdict(said: str) -> str:
+    """A :func:`verdict` without what follows its word in brackets (the reason, and the
+    seeds left out after it): ``cannot tell at 10 seeds``."""
+    return said.split(" (")[0]
 
 
 def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
