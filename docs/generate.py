@@ -1016,19 +1016,22 @@ def with_population_tables(root: Path) -> str:
     the table of the MuJoCo step's benchmark."""
     data = read_json(root, "benchmarks/results/batch_population.json")
     text = (root / "docs" / "batch.md").read_text(encoding="utf-8")
-    measured = [machine_line(data["machine"], data["command"].split(" --note")[0])]
-    if data.get("note"):
-        measured.append(f"What shared the cores: {data['note']}.")
-    options = [*measured, "", *population_option_table(data)]
+    options = [*measured_lines(data), "", *population_option_table(data)]
     blocks = [options, population_run_table(data)]
     text = rewrite_blocks(text, POPULATION_START, POPULATION_END, blocks, "docs/batch.md")
     step = read_json(root, "benchmarks/results/mujoco_step.json")
-    step_block = [machine_line(step["machine"], step["command"].split(" --note")[0])]
-    if step.get("note"):
-        step_block.append(f"What shared the cores: {step['note']}.")
-    step_block += ["", *mujoco_step_table(step)]
+    step_block = [*measured_lines(step), "", *mujoco_step_table(step)]
     return rewrite_blocks(text, MUJOCO_STEP_START, MUJOCO_STEP_END, [step_block],
                           "docs/batch.md")  # fmt: skip
+
+
+def measured_lines(data: dict[str, Any]) -> list[str]:
+    """Where and how a benchmark ran (its command without the ``--note``), and its note on
+    what shared the cores when it has one."""
+    lines = [machine_line(data["machine"], data["command"].split(" --note")[0])]
+    if data.get("note"):
+        lines.append(f"What shared the cores: {data['note']}.")
+    return lines
 
 
 MUJOCO_STEP_START = (
