@@ -33,7 +33,7 @@ __all__ = ["ONLINE", "OnlineKind", "OnlineTrainer", "episode_diagnostics"]
 
 def episode_diagnostics(stats: StepStats, learner: OnlineConfig) -> SurrogateDiagnostics:
     """Per-episode means of the regularisation diagnostics and the adaptive trace decay of
-    an episode's updates (its step statistics stacked by :meth:`StepStats.stack`)."""
+    an episode's updates (its step statistics side by side: :meth:`StepStats.from_table`)."""
     reg = regularization_amount(
         learner.method, stats.ratio, stats.adv, learner.eps, learner.beta, learner.eta
     )
@@ -43,6 +43,26 @@ def episode_diagnostics(stats: StepStats, learner: OnlineConfig) -> SurrogateDia
         ratio_dev=float((stats.ratio - 1.0).abs().mean()),
         trace_decay=float(stats.trace_decay.mean()),
     )
+
+
+def _rows(columns: list[np.ndarray]) -> np.ndarray:
+    """An episode's step columns as ``[5, length]`` rows (float32 when empty)."""
+    return np.stack(columns, axis=1) if columns else np.zeros((5, 0), np.float32)
+
+
+def _columns(rows: Any) -> list[np.ndarray]:
+    """The step columns of a checkpoint's ``episode["steps"]``: five ``[length]`` tensors
+    (field order of :class:`StepStats`), or, as checkpoints before them held, five lists
+    of 0-dim tensors (the same float32 values either way)."""
+    table = np.stack([_float32(row) for row in rows])
+    return list(table.T.copy())
+
+
+def _float32(row: Any) -> np.ndarray:
+    """One field of a checkpoint's ``episode["steps"]`` as a float32 array."""
+    if isinstance(row, torch.Tensor):
+        return row.numpy().astype(np.float32)
+    return np.asarray([np.asarray(v) for v in row], np.float32).reshape(-1)
 
 
 def _spaces(env_name: str) -> dict[str, Any]:
@@ -62,7 +82,7 @@ class _Slot:
         self.episodes = 0
         self.total_steps = 0
         self.action: np.ndarray | None = None  # next action; None: the episode must begin
-        self.steps: list[StepStats] = []  # this episode's step statistics
+        self.steps: list[np.ndarray] = []  # this episode's step statistics, a [5] column each
         self.ret = 0.0
         self.length = 0
 
@@ -110,7 +130,7 @@ class OnlineTrainer:
             s.episodes, s.total_steps = int(state["episodes"]), int(state["total_steps"])
             ep = state["episode"]
             s.ret, s.length = float(ep["ret"]), int(ep["length"])
-            s.steps = [StepStats(*row) for row in zip(*ep["steps"], strict=True)]
+            s.steps = _columns(ep["steps"])
             if state["env"] is not None:  # mid-episode: rebuild the episode
                 s.env.replay(state["env"])
                 s.action = np.asarray(state["action"])
@@ -157,7 +177,8 @@ class OnlineTrainer:
         self._begin_episodes([k for k in busy if self._slot(k).action is None], errors)
         transition = self._step_environments(busy, errors)
         stats, next_actions = self.learner.step(*transition)
-        adv_ok = torch.isfinite(stats.adv).numpy()
+        table = stats.table()
+        adv_ok = np.isfinite(table[1])
         _, _, terminated, truncated, _ = transition
         reports: dict[int, Progress] = {}
         for k in busy:
@@ -168,7 +189,7 @@ class OnlineTrainer:
                 msg = f"non-finite loss (advantage) at episode {s.episodes}, step {s.length}"
                 reports[k] = Progress([], error=msg)
             else:
-                s.steps.append(stats.member(k))
+                s.steps.append(table[:, k].copy())
                 s.action = next_actions[k]
                 ended = self._end_episode(s, bool(terminated[k] or truncated[k]))
                 if ended is not None:
@@ -227,7 +248,7 @@ class OnlineTrainer:
             return None
         s.total_steps += s.length
         s.episodes += 1
-        diag = episode_diagnostics(StepStats.stack(s.steps), s.cfg.learner)
+        diag = episode_diagnostics(StepStats.from_table(_rows(s.steps)), s.cfg.learner)
         ep = Episode(total_steps=s.total_steps, ret=s.ret, length=s.length, diagnostics=diag)
         report = Progress(
             [ep],
@@ -256,7 +277,6 @@ class OnlineTrainer:
     def state(self, slot: int) -> dict[str, Any]:
         """The run's member, environment replay record, counters and episode in progress."""
         s = self._slot(slot)
-        fields = ("delta", "adv", "ratio", "divergence", "trace_decay")
         return {
             "learner": self.learner.member_state(slot),
             "episodes": s.episodes,
@@ -267,7 +287,7 @@ class OnlineTrainer:
             "episode": {
                 "ret": s.ret,
                 "length": s.length,
-                "steps": [[getattr(st, f) for st in s.steps] for f in fields],
+                "steps": [torch.from_numpy(row.copy()) for row in _rows(s.steps)],
             },
         }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -35,6 +36,21 @@ class StepStats:
     def as_dict(self) -> dict[str, float]:
         """Python floats by name, for 0-dim stats (synchronises; logging and tests only)."""
         return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+    def table(self) -> np.ndarray:
+        """The fields as the rows of one ``[5, K]`` array, in field order (a copy; the
+        fields' dtype). A run loop keeps a member's column per step: cheaper than
+        :meth:`member`'s five tensors, and :meth:`from_table` gives the same tensors back."""
+        return torch.stack(
+            (self.delta, self.adv, self.ratio, self.divergence, self.trace_decay)
+        ).numpy()
+
+    @staticmethod
+    def from_table(table: np.ndarray) -> StepStats:
+        """The stats whose fields are the rows of ``table`` (``[5, ...]``; shares its
+        memory): :meth:`table`'s inverse, and with columns of many steps stacked side by
+        side, what :meth:`stack` gives of those steps."""
+        return StepStats(*torch.from_numpy(np.ascontiguousarray(table)))
 
     @staticmethod
     def stack(steps: list[StepStats]) -> StepStats:
