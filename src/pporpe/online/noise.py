@@ -74,7 +74,8 @@ class NoiseBank:
         self.pos = np.zeros(k, dtype=np.int64)
         self.gens: list[torch.Generator] = [torch.Generator() for _ in range(k)]
         self.block_state: list[Tensor] = [g.get_state() for g in self.gens]
-        self._arange = torch.arange(k)
+        self._buf_np = self.buf.numpy()  # the same memory, indexed by numpy (cheaper)
+        self._arange = np.arange(k)
 
     def _refill(self, k: int) -> None:
         self.block_state[k] = self.gens[k].get_state()
@@ -93,11 +94,13 @@ class NoiseBank:
         Rows of members outside ``mask`` are returned too (their next points) but not
         consumed.
         """
-        for k in np.nonzero(mask & (self.pos >= self.block))[0]:
-            self._refill(int(k))
-        pts = self.buf[self._arange, torch.from_numpy(np.minimum(self.pos, self.block - 1))]
-        self.pos += mask.astype(np.int64)
-        return pts
+        spent = self.pos >= self.block
+        if spent.any():
+            for k in np.nonzero(mask & spent)[0]:
+                self._refill(int(k))
+        pts = self._buf_np[self._arange, np.minimum(self.pos, self.block - 1)]
+        self.pos += mask
+        return torch.from_numpy(pts)
 
     def state(self, k: int) -> dict[str, Any]:
         """Generator state at the start of the current block and the position in it."""
