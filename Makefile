@@ -67,13 +67,15 @@ lint: $(VENV)/.installed-dev
 ## The documentation site (Sphinx, MyST Markdown) into docs/_build/html, warnings as errors,
 ## so a broken link or reference fails. First it checks that the generated pages (results
 ## pages, the README's results table) are what docs/generate.py writes from the committed
-## results today; `make docs-pages` rewrites them after new results.
+## results today, and that the README's headline figure was drawn from them;
+## `make docs-pages` rewrites them (and redraws it) after new results.
 docs: $(VENV)/.installed-docs
 	$(PY) docs/generate.py --check
 	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
 
 docs-pages: $(VENV)/.installed
 	$(PY) docs/generate.py
+	$(PY) experiments/headline.py
 
 ## The test suite: lint, types, the docs site, then pytest.
 test: lint docs

@@ -17,6 +17,10 @@ comes from a committed result file, never from a hand-copied number:
   committed grid's ``REPORT.md`` and ``summary.csv`` (:data:`HEADLINE_GRIDS`), and the
   batch grid's once committed.
 
+The README's headline figure (``results/headline.png``) is drawn from the same grids by
+``experiments/headline.py``, which needs the package; ``--check`` names it while the
+sources it recorded (``results/headline.json``) are not today's.
+
     python docs/generate.py           # rewrite the pages that changed
     python docs/generate.py --check   # exit 1 naming the pages that are not up to date
 
@@ -182,6 +186,44 @@ def headline_grid(root: Path, task: str) -> str | None:
         if seeds[grid] >= HEADLINE_MIN_SEEDS:
             return grid
     return committed[-1] if committed else None
+
+
+HEADLINE_FIGURE = "results/headline.png"
+"""The README's headline figure: per task, the learning curves of its headline grid."""
+HEADLINE_SOURCES = "results/headline.json"
+"""What :data:`HEADLINE_FIGURE` was drawn from (:func:`headline_sources`), written with it
+by ``experiments/headline.py``; ``--check`` compares it with today's."""
+HEADLINE_COMMAND = "python experiments/headline.py"
+
+
+def method_seeds(root: Path, grid: str, task: str) -> dict[str, int]:
+    """Finished seeds per method of ``task`` in a grid's ``summary.csv``."""
+    with open(root / grid / "summary.csv", encoding="utf-8") as f:
+        return {r["method"]: int(r["seeds"]) for r in csv.DictReader(f) if r["task"] == task}
+
+
+def headline_sources(root: Path) -> dict[str, dict[str, Any]]:
+    """Per task with a committed grid, what the headline figure draws: its headline grid
+    (:func:`headline_grid`, the README table's), the training episodes per run there and
+    the finished seeds per method."""
+    out: dict[str, dict[str, Any]] = {}
+    for task in TASKS:
+        grid = headline_grid(root, task)
+        if grid is not None:
+            out[task] = {
+                "grid": grid,
+                "episodes": training_length(root, grid)[task],
+                "seeds": method_seeds(root, grid, task),
+            }
+    return out
+
+
+def headline_figure_stale(root: Path) -> bool:
+    """Whether :data:`HEADLINE_SOURCES` (so the figure) is not what the committed grids give."""
+    path = root / HEADLINE_SOURCES
+    if not path.exists():
+        return True
+    return bool(json.loads(path.read_text(encoding="utf-8")) != headline_sources(root))
 
 
 def readme_row(root: Path, grid: str, task: str) -> Row:
@@ -1081,12 +1123,15 @@ def expected(root: Path = ROOT) -> dict[str, str]:
 
 
 def stale(root: Path = ROOT) -> list[str]:
-    """The generated files whose text on disk is not what :func:`expected` writes."""
+    """The generated files whose text on disk is not what :func:`expected` writes, and the
+    headline figure if it was drawn from other results (:func:`headline_figure_stale`)."""
     out = []
     for path, text in expected(root).items():
         target = root / path
         if not target.exists() or target.read_text(encoding="utf-8") != text:
             out.append(path)
+    if headline_figure_stale(root):
+        out.append(HEADLINE_FIGURE)
     return out
 
 
@@ -1098,7 +1143,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         bad = stale(args.root)
         for path in bad:
-            print(f"{path} is not what the committed results give: run python docs/generate.py")
+            command = HEADLINE_COMMAND if path == HEADLINE_FIGURE else "python docs/generate.py"
+            print(f"{path} is not what the committed results give: run {command}")
         return 1 if bad else 0
     for path, text in expected(args.root).items():
         target = args.root / path
@@ -1106,6 +1152,8 @@ def main(argv: list[str] | None = None) -> int:
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_text(text, encoding="utf-8")
             print(f"wrote {path}")
+    if headline_figure_stale(args.root):
+        print(f"{HEADLINE_FIGURE} is not what the committed results give: run {HEADLINE_COMMAND}")
     return 0
 
 

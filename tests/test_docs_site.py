@@ -24,6 +24,7 @@ SOURCES = [
     "results/paper-testbed/summary.csv",
     "results/paper-50seeds/REPORT.md",
     "results/paper-50seeds/summary.csv",
+    "results/headline.json",
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
     "docs/run-folders.md",
@@ -74,7 +75,12 @@ def test_the_script_writes_every_page_and_check_names_a_stale_one(
     assert gen.main(["--check", "--root", str(tmp_path)]) == 1
     out = capsys.readouterr().out
     assert "README.md is not what" in out and "docs/results/reproduction" in out
-    assert "docs/results/ablation.md" not in out
+    assert "docs/results/ablation.md" not in out and gen.HEADLINE_FIGURE not in out
+    (tmp_path / gen.HEADLINE_SOURCES).unlink()  # the figure's record of what it drew
+    assert gen.main(["--check", "--root", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert f"{gen.HEADLINE_FIGURE} is not what the committed results give: run " in out
+    assert gen.HEADLINE_COMMAND in out and gen.stale(tmp_path)[-1] == gen.HEADLINE_FIGURE
 
 
 def test_the_readme_table_is_the_reports_final_score_claims() -> None:
@@ -176,3 +182,24 @@ def test_the_cleanrl_page_shows_each_task_side_by_side(tmp_path: Path) -> None:
     assert "| HalfCheetah-v4 | 10 / 5 / 0 |" in page and "| - | - | 1100 / - / - |" in page
     assert "Steps per CPU second: " in page
     assert "curves_HalfCheetah-v4.png" in page and "not run yet" not in page
+
+
+def test_the_headline_figure_is_redrawn_when_its_grids_change(tmp_path: Path) -> None:
+    """The figure's sources are each task's headline grid, its length and its seeds per
+    method; it is stale while the recorded sources are missing or not today's."""
+    gen = docs_generator()
+    _summary(tmp_path, "results/paper-50seeds", {"pendulum": 12, "swingup": 9})
+    _summary(tmp_path, "results/paper", {"pendulum": 10, "swingup": 10, "ant": 10})
+    sources = gen.headline_sources(tmp_path)
+    assert list(sources) == ["pendulum", "swingup", "ant"]  # in the order of the tasks
+    assert sources["pendulum"] == {
+        "grid": "results/paper-50seeds",
+        "episodes": 200,
+        "seeds": {"PPO": 12, "PPO-RB": 12, "PPO-RPE": 12},
+    }
+    assert sources["swingup"]["grid"] == "results/paper"
+    assert gen.headline_figure_stale(tmp_path)  # never drawn
+    (tmp_path / gen.HEADLINE_SOURCES).write_text(json.dumps(sources))
+    assert not gen.headline_figure_stale(tmp_path)
+    _summary(tmp_path, "results/paper-full", {"ant": 10})  # a more conclusive grid arrives
+    assert gen.headline_figure_stale(tmp_path)

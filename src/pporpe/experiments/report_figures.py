@@ -7,6 +7,7 @@ calling this module leaves the caller's matplotlib backend alone.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -22,10 +23,12 @@ from .verdicts import EQUIVALENCE_BOUNDS
 
 __all__ = [
     "STEP_POINTS",
+    "CurvePanel",
     "aggregate_figure",
     "band",
     "curve_figure",
     "moving_average",
+    "panel_figure",
     "step_curve",
     "step_curve_figure",
     "summary_figure",
@@ -82,12 +85,33 @@ def curve_figure(cells: list[Cell], field: str, ylabel: str, title: str, smooth:
     column, :func:`~pporpe.experiments.results.record_value`) of every method, with 95%
     bands, smoothed by a moving average over ``smooth`` episodes."""
     envs = tasks_of(cells)
-    fig = Figure(figsize=(4.2 * len(envs), 3.6))
-    axes = fig.subplots(1, len(envs), squeeze=False)
-    for ax, env in zip(axes[0], envs, strict=True):
-        _draw_curves(ax, [c for c in cells if c.env == env], field, smooth)
-        _label_panel(ax, env, "episode", ylabel)
-    return _titled(fig, title, smooth)
+    panels = [CurvePanel(env, [c for c in cells if c.env == env], smooth) for env in envs]
+    return panel_figure(panels, field, ylabel, title)
+
+
+@dataclass(frozen=True)
+class CurvePanel:
+    """One panel of :func:`panel_figure`: its title and the cells (one per method) drawn."""
+
+    title: str
+    """The panel's title (a task's name, or more: where its runs come from)."""
+    cells: list[Cell]
+    """The cells of one task, a curve per method."""
+    smooth: int
+    """Episodes of the trailing moving average (1: none)."""
+
+
+def panel_figure(panels: list[CurvePanel], field: str, ylabel: str, title: str) -> Figure:
+    """A row of panels, each the mean over seeds of the per-episode ``field`` of its cells'
+    methods with 95% bands (:func:`curve_figure`'s panels, each with its own title and
+    smoothing: panels may come from different grids)."""
+    fig = Figure(figsize=(4.2 * len(panels), 3.6))
+    axes = fig.subplots(1, len(panels), squeeze=False)
+    for ax, panel in zip(axes[0], panels, strict=True):
+        _draw_curves(ax, panel.cells, field, panel.smooth)
+        _label_panel(ax, panel.title, "episode", ylabel)
+    smooth = {panel.smooth for panel in panels}
+    return _titled(fig, title, smooth.pop() if len(smooth) == 1 else 1)
 
 
 def _label_panel(ax: Axes, env: str, xlabel: str, ylabel: str) -> None:
