@@ -156,4 +156,5 @@ def test_the_version_is_one_in_every_place() -> None:
 def test_readme_stays_a_front_page() -> None:
     """At most 150 lines: history belongs in CHANGELOG.md and results in docs/results/."""
     assert len(README.splitlines()) <= 150
-    assert "arxiv.org/abs/2010.03290" in README and "results/paper/fig_learning.png" in README
+    assert "arxiv.org/abs/2010.03290" in README and "results/headline.png" in README
+    assert (ROOT / "results/headline.png").is_file()  # committed, not only drawn here

@@ -276,19 +276,22 @@ def test_the_first_signal_asks_the_second_interrupts_and_the_handlers_come_back(
     an ignored SIGINT (a background process) stays ignored."""
     from pporpe.runs.stopping import stop_on_signals
 
-    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        with stop_on_signals() as stop:
-            assert not stop()
-            os.kill(os.getpid(), sig)
-            assert stop() and stop.signum == sig
-            with pytest.raises(KeyboardInterrupt):
-                os.kill(os.getpid(), sig)
-        assert {s: signal.getsignal(s) for s in before} == before
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # SIGINT as a foreground process has it, whoever started pytest (a shell's background
+    # job inherits it ignored, the case checked last)
+    launched_with = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with stop_on_signals() as stop:
+                assert not stop()
+                os.kill(os.getpid(), sig)
+                assert stop() and stop.signum == sig
+                with pytest.raises(KeyboardInterrupt):
+                    os.kill(os.getpid(), sig)
+            assert {s: signal.getsignal(s) for s in before} == before
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         with stop_on_signals():
             assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
             assert signal.getsignal(signal.SIGTERM) is not before[signal.SIGTERM]
     finally:
-        signal.signal(signal.SIGINT, before[signal.SIGINT])
+        signal.signal(signal.SIGINT, launched_with)
