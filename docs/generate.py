@@ -169,10 +169,17 @@ def paper_claims(
     return {(r[i["claim"]], r[i["task"]], r[i["rival"]]): (r[p], r[i["verdict"]]) for r in rows[1:]}
 
 
+RIVALS = ("PPO", "PPO-RB")
+"""The methods PPO-RPE is compared with, in the order of a row's verdicts."""
+
+
 def short_verdict(verdicts: list[str]) -> str:
-    """One verdict for a row: the shared one, shortened, or each one."""
+    """One verdict for a row (one per rival of :data:`RIVALS`): the shared one, shortened,
+    or each one with its rival."""
     short = [v.split(" (")[0].split(", on the")[0] for v in verdicts]
-    return short[0] if len(set(short)) == 1 else "; ".join(short)
+    if len(set(short)) == 1:
+        return short[0]
+    return ", ".join(f"{v} against {rival}" for v, rival in zip(short, RIVALS, strict=True))
 
 
 def headline_grid(root: Path, task: str) -> str | None:
@@ -233,9 +240,9 @@ def readme_row(root: Path, grid: str, task: str) -> Row:
     where the paper makes no early-learning claim)."""
     means, claims = paper_means(root, grid), paper_claims(root, grid)
     scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
-    final = [claims[("final performance", task, rival)] for rival in ("PPO", "PPO-RB")]
-    early = [claims.get(("early learning", task, rival)) for rival in ("PPO", "PPO-RB")]
-    reg = [claims[("regularisation", task, rival)] for rival in ("PPO", "PPO-RB")]
+    final = [claims[("final performance", task, rival)] for rival in RIVALS]
+    early = [claims.get(("early learning", task, rival)) for rival in RIVALS]
+    reg = [claims[("regularisation", task, rival)] for rival in RIVALS]
     verdicts = [
         short_verdict([v for _, v in final]),
         short_verdict([e[1] for e in early if e]) if all(early) else "-",
@@ -273,14 +280,14 @@ def batch_readme_rows(root: Path, grid: str = BATCH_GRID) -> list[Row]:
         if not {"PPO", "PPO-RB"} <= set(got) or not seeds.get(task):
             continue
         scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
-        verdict = short_verdict([got[r][1] for r in ("PPO", "PPO-RB")])
+        verdict = short_verdict([got[r][1] for r in RIVALS])
         rows.append([f"[{task}]({grid}/REPORT.md)", BATCH_LENGTH, str(seeds[task]), scores,
                      got["PPO"][0], got["PPO-RB"][0], verdict, "-", "-"])  # fmt: skip
     p = {r[1]: (r[3], r[4]) for r in pooled[1:] if r[0] == "test score"}
     iqm = {r[1]: r[4].split(" [")[0] for r in iqms[1:] if r[0] == "test score"}
     if len(rows) > 1 and {"PPO", "PPO-RB"} <= set(p) and set(METHODS.values()) <= set(iqm):
         scores = " / ".join(iqm[m] for m in METHODS.values()) + " (IQM, normalised)"
-        verdict = short_verdict([p[r][1] for r in ("PPO", "PPO-RB")])
+        verdict = short_verdict([p[r][1] for r in RIVALS])
         n = str(min(int(r[2]) for r in rows))
         rows.append([f"[{len(rows)} tasks, pooled]({grid}/REPORT.md)", BATCH_LENGTH, n, scores,
                      p["PPO"][0], p["PPO-RB"][0], verdict, "-", "-"])  # fmt: skip

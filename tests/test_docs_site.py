@@ -203,3 +203,15 @@ def test_the_headline_figure_is_redrawn_when_its_grids_change(tmp_path: Path) ->
     assert not gen.headline_figure_stale(tmp_path)
     _summary(tmp_path, "results/paper-full", {"ant": 10})  # a more conclusive grid arrives
     assert gen.headline_figure_stale(tmp_path)
+
+
+def test_a_rows_verdict_names_the_rival_where_the_two_differ() -> None:
+    gen = docs_generator()
+    same = ["equivalent (the CI stays clear of 0.36 or 0.64)", "equivalent (it does)"]
+    assert gen.short_verdict(same) == "equivalent"
+    mixed = ["equivalent (the CI stays clear)", "cannot tell at 50 seeds (the CI contains 0.5)"]
+    assert gen.short_verdict(mixed) == (
+        "equivalent against PPO, cannot tell at 50 seeds against PPO-RB"
+    )
+    left_out = ["supported (PPO-RPE ahead), on the 9 seeds both finished", "supported (ahead)"]
+    assert gen.short_verdict(left_out) == "supported"
