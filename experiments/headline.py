@@ -23,7 +23,7 @@ from types import ModuleType
 from typing import Any
 
 from pporpe.experiments.report_figures import CurvePanel, panel_figure
-from pporpe.experiments.results import load_results
+from pporpe.experiments.results import Cell, load_results
 from pporpe.io import atomic_savefig, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,17 +43,24 @@ def docs_generate(root: Path) -> ModuleType:
     return module
 
 
-def panel(root: Path, task: str, name: str, source: dict[str, Any], say_smooth: bool) -> CurvePanel:
-    """The panel of one task: its cells in its grid, titled with the seeds and the length
-    (and the smoothing if ``say_smooth``: panels that smooth differently say so each)."""
-    cells = [c for c in load_results(root / source["grid"]) if c.env == task]
+def smoothing(episodes: int) -> int:
+    """Episodes of a panel's moving average: a :data:`CURVE_POINTS`-th of its run."""
+    return max(1, episodes // CURVE_POINTS)
+
+
+def panel(
+    cells: list[Cell], task: str, name: str, source: dict[str, Any], say_smooth: bool
+) -> CurvePanel:
+    """The panel of one task: its cells of its grid's ``cells``, titled with the seeds and
+    the length (and the smoothing if ``say_smooth``: panels that smooth differently say so
+    each)."""
     seeds = sorted(set(source["seeds"].values()))
     n = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]}-{seeds[-1]}"
-    smooth = max(1, source["episodes"] // CURVE_POINTS)
+    smooth = smoothing(source["episodes"])
     title = f"{name}: {n} seeds, {source['episodes']} episodes"
     if say_smooth:
         title += f"\n(moving average over {smooth})"
-    return CurvePanel(title, cells, smooth)
+    return CurvePanel(title, [c for c in cells if c.env == task], smooth)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,8 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     sources = gen.headline_sources(args.root)
     if not sources:
         raise SystemExit("no grid of the paper's comparison is committed: nothing to draw")
-    differ = len({src["episodes"] // CURVE_POINTS for src in sources.values()}) > 1
-    panels = [panel(args.root, task, gen.TASKS[task], src, differ) for task, src in sources.items()]
+    grids = {src["grid"]: load_results(args.root / src["grid"]) for src in sources.values()}
+    differ = len({smoothing(src["episodes"]) for src in sources.values()}) > 1
+    panels = [panel(grids[src["grid"]], task, gen.TASKS[task], src, differ)
+              for task, src in sources.items()]  # fmt: skip
     title = "PPO, PPO-RB and PPO-RPE on the paper's tasks, Table I"
     fig = panel_figure(panels, "ret", "episode return", title)
     atomic_savefig(fig, args.root / gen.HEADLINE_FIGURE)

@@ -25,7 +25,8 @@ def test_a_panel_per_source_titled_with_its_seeds_and_length(tmp_path: Path) -> 
     assert (tmp_path / gen.HEADLINE_FIGURE).read_bytes()[:4] == b"\x89PNG"
     assert not gen.headline_figure_stale(tmp_path)
     source = drawn["pendulum"]
-    panel = headline.panel(tmp_path, "pendulum", "InvertedPendulum", source, say_smooth=True)
+    cells = load_results(tmp_path / source["grid"])
+    panel = headline.panel(cells, "pendulum", "InvertedPendulum", source, say_smooth=True)
     seeds = source["seeds"]["PPO"]
     assert panel.title == f"InvertedPendulum: {seeds} seeds, 200 episodes\n(moving average over 10)"
     assert panel.smooth == 10 and {c.env for c in panel.cells} == {"pendulum"}
