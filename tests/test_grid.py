@@ -403,6 +403,81 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
         assert got == records_of(ref, run.key)
 
 
+def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(tmp_path: Path) -> None:
+    """The population's home folder is named after the runs it packs, so a grid resumed
+    with a filter (or after a run finished) plans a new home: the runs in flight in the
+    old home's checkpoint must go on from there, not start again. Killed mid-way, then
+    resumed with ``--seeds 0`` (the seed of the two runs in the slots): their first
+    records are the checkpoint's very rows (the same wall times), every record is there
+    once, and the numbers are the uninterrupted grid's."""
+    from pporpe.runs.folder import load_checkpoint
+
+    spec_path = write_spec(tmp_path, POP_SPEC, "pop.toml")
+    spec = load_spec(spec_path)
+    ref = tmp_path / "ref"
+    assert reproduce(spec, ref, workers=1, population=2, progress=False).ok
+    args = ("--workers", "1", "--population", "2", "--checkpoint-seconds", "0")
+    out = tmp_path / "out"
+    proc = _launch(spec_path, out, *args)
+    deadline = time.monotonic() + 120
+    old: list[Path] = []
+    while time.monotonic() < deadline:  # until the population has a checkpoint
+        old = list((out / "populations").glob("*/checkpoint.pt"))
+        if old or any((out / r.key / "done.json").exists() for r in spec.runs):
+            break
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    time.sleep(0.5)
+    assert len(old) == 1 and not any((out / r.key / "done.json").exists() for r in spec.runs)
+    saved = load_checkpoint(old[0].parent)
+    in_flight = {str((old[0].parent / n).resolve()): m for n, m in saved["members"].items()}
+    assert sorted(Path(d).parent.name for d in in_flight) == ["ppo", "rpe"]
+    assert {Path(d).name for d in in_flight} == {"seed0"}
+    assert min(len(m["records"]) for m in in_flight.values()) >= 1
+    proc = _launch(spec_path, out, *args, "--seeds", "0")
+    assert proc.wait(timeout=300) == 0
+    homes = sorted(p.parent.name for p in (out / "populations").glob("*/population.json"))
+    assert len(homes) == 2  # the old home, and the one the filtered grid planned
+    for run_dir, member in in_flight.items():
+        key = str(Path(run_dir).relative_to(out.resolve()))
+        got = read_records(out / key / "episodes.csv")
+        head = [r.wall_time for r in got[: len(member["records"])]]
+        assert head == [float(r["wall_time"]) for r in member["records"]]
+        assert [r.episode for r in got] == list(range(30))
+        assert records_of(out, key) == records_of(ref, key)
+
+
+def test_adopt_orphaned_states_hands_each_run_its_most_advanced_state(tmp_path: Path) -> None:
+    """Two old populations hold run a (3 and 5 episodes) and run b (2); the planned home
+    holds a at 9 and is not read; b's own checkpoint has 4 episodes, so only a is given a
+    state, the 5-episode one. A run not asked for is left alone, and nothing is deleted."""
+    from pporpe.runs.folder import load_checkpoint, save_checkpoint
+    from pporpe.runs.population_checkpoint import adopt_orphaned_states
+
+    def state(n: int) -> dict:
+        return {"records": [{"episode": i} for i in range(n)], "updates": []}
+
+    pops = tmp_path / "out" / "populations"
+    runs = {name: tmp_path / "out" / "task" / name for name in ("a", "b", "c")}
+    for run in runs.values():
+        run.mkdir(parents=True)
+    for home, members in (("old1", {"a": 3, "b": 2}), ("old2", {"a": 5, "c": 7}),
+                          ("planned", {"a": 9})):  # fmt: skip
+        (pops / home).mkdir(parents=True)
+        held = {f"../../task/{k}": state(n) for k, n in members.items()}
+        save_checkpoint(pops / home / "checkpoint.pt", {"members": held})
+    save_checkpoint(runs["b"] / "checkpoint.pt", state(4))
+    adopted = adopt_orphaned_states(pops, [pops / "planned"], [runs["a"], runs["b"]])
+    assert adopted == [runs["a"]]
+    assert len(load_checkpoint(runs["a"])["records"]) == 5
+    assert len(load_checkpoint(runs["b"])["records"]) == 4
+    assert not (runs["c"] / "checkpoint.pt").exists()
+    assert all((pops / h / "checkpoint.pt").exists() for h in ("old1", "old2", "planned"))
+    assert adopt_orphaned_states(pops, [], [runs["a"]]) == [runs["a"]]  # now the 9 of planned
+    assert adopt_orphaned_states(tmp_path / "none", [], [runs["a"]]) == []
+
+
 def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_poll(
     tmp_path: Path,
 ) -> None:

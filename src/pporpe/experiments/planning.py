@@ -9,7 +9,10 @@ from typing import Any
 from ..runs.folder import config_json
 from ..runs.kinds import kind_of
 
-__all__ = ["POPULATION_KINDS", "Job", "plan_jobs"]
+__all__ = ["POPULATIONS", "POPULATION_KINDS", "Job", "plan_jobs"]
+
+POPULATIONS = "populations"
+"""The folder of a grid's output folder that holds the home folders of its populations."""
 
 POPULATION_KINDS = ("online", "batch")
 """Learner kinds whose trainer holds several runs at once (a population); runs of the
@@ -53,7 +56,7 @@ def plan_jobs(
         size = -(-len(members) // n_jobs)
         for j in range(0, len(members), size):
             chunk = members[j : j + size]
-            home = chunk[0][0] if len(chunk) == 1 else out_dir / "populations" / _job_name(chunk)
+            home = chunk[0][0] if len(chunk) == 1 else out_dir / POPULATIONS / _job_name(chunk)
             jobs.append(
                 Job(
                     str(home),

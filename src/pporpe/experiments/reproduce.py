@@ -29,10 +29,11 @@ from typing import Any
 from ..envs import make_env
 from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.folder import CHECKPOINT, check_checkpoint
+from ..runs.population_checkpoint import adopt_orphaned_states
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
 from .merge import merged_grid_summary, write_grid_summary, write_status
-from .planning import Job, plan_jobs
+from .planning import POPULATIONS, Job, plan_jobs
 from .progress import GridProgress
 
 __all__ = ["GridOutcome", "Job", "merged_grid_summary", "plan_jobs", "reproduce", "run_job"]
@@ -190,7 +191,10 @@ def reproduce(
     then lists all of its runs, so that the report counts what is still missing.
 
     Online runs of one task (batch runs of one task and shape) are trained ``population``
-    at a time by one worker (:func:`~.planning.plan_jobs`); the checkpoints their
+    at a time by one worker (:func:`~.planning.plan_jobs`); a run in flight in a population
+    that this call no longer plans (some runs finished since, or the filter or the worker
+    count changed) resumes from that population's checkpoint
+    (:func:`~pporpe.runs.population_checkpoint.adopt_orphaned_states`); the checkpoints their
     ``checkpoint_every`` asks for are written at most every ``checkpoint_seconds``. Whatever
     the count, every run is also checkpointed by time: after a quarter of
     ``checkpoint_within`` seconds, half of it later, then every ``checkpoint_within``
@@ -213,6 +217,9 @@ def reproduce(
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
     _check_checkpoints(jobs)
+    adopt_orphaned_states(
+        out_dir / POPULATIONS, [j.home for j in jobs], [d for j in jobs for d, _ in j.runs]
+    )
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

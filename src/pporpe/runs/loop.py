@@ -57,7 +57,7 @@ from .folder import (
 from .folder import save_checkpoint as save_checkpoint
 from .kinds import LearnerKind, NonFiniteError, Progress, Trainer, kind_of
 from .logger import EpisodeRecord, LoggedUpdate, RunLogger, read_records
-from .population_checkpoint import Packing, PopulationCheckpoint
+from .population_checkpoint import Packing, PopulationCheckpoint, progress_of
 from .stopping import Interrupted
 
 __all__ = ["NonFiniteError", "RunResult", "load_policy", "run_queue", "train"]
@@ -290,11 +290,14 @@ class _Queue:
             self.population.write_mirror(self.packing)
 
     def begin(self, slot: int, i: int) -> None:
-        """Start run ``i`` in ``slot``: fresh, or from its state (the population's or its own)."""
+        """Start run ``i`` in ``slot``: fresh, or from its state, the population's or its own
+        (the more advanced: :func:`~.population_checkpoint.progress_of`)."""
         run = self.dirs[i]
         state = self.members.pop(self.names[i], None)
-        if state is None and (run / CHECKPOINT).exists():
-            state = load_checkpoint(run)
+        if (run / CHECKPOINT).exists():
+            own = load_checkpoint(run)
+            if state is None or progress_of(own) > progress_of(state):
+                state = own
         bar = self.hooks.progress and len(self.slots) == 1
         book = _Run(self.kind, self.cfgs[i], run, bar=bar)
         self.trainer.start(slot, self.cfgs[i], state)

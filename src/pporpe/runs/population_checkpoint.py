@@ -6,12 +6,20 @@ run is in which slot, which runs are still queued). ``population.json`` beside i
 readable copy of the packing. Run folders are named relative to the home folder, so an
 output folder moved or copied elsewhere resumes from its checkpoint; checkpoints of pporpe
 0.4.0 and earlier named them by their full paths, and are still read.
+
+A grid's packing depends on which of its runs are unfinished, so a grid resumed after some
+runs finished (or with another filter or worker count) may pack its runs into populations
+under new home folders. The runs in flight in an old home's checkpoint keep their states
+there: :func:`adopt_orphaned_states` hands each of them to its run folder, and the run
+loop resumes a run from the most advanced of its population's state and its own
+checkpoint (:func:`progress_of`).
 """
 
 from __future__ import annotations
 
 import os
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +28,13 @@ from ..io import atomic_write_json
 from .folder import CHECKPOINT, load_checkpoint, save_checkpoint
 from .migrate import packing_names
 
-__all__ = ["POPULATION_FILE", "Packing", "PopulationCheckpoint"]
+__all__ = [
+    "POPULATION_FILE",
+    "Packing",
+    "PopulationCheckpoint",
+    "adopt_orphaned_states",
+    "progress_of",
+]
 
 POPULATION_FILE = "population.json"
 """The readable copy of the packing, in the home folder."""
@@ -88,3 +102,45 @@ class PopulationCheckpoint:
             self.names[i]
         )
         return member
+
+
+def progress_of(state: dict[str, Any]) -> tuple[int, int]:
+    """How far a run's saved state has come: its logged episodes, then its logged updates.
+    Every learner kind's checkpoint holds both lists, and they only grow, so of two states
+    of one run the larger is the later."""
+    return len(state.get("records", ())), len(state.get("updates", ()))
+
+
+def adopt_orphaned_states(
+    populations: Path, homes: Collection[str | Path], runs: Collection[str | Path]
+) -> list[Path]:
+    """Give runs the states that populations no longer planned hold for them.
+
+    For each run folder of ``runs``, the most advanced state (:func:`progress_of`) that the
+    checkpoint of a population folder under ``populations`` holds, homes of ``homes`` (the
+    populations planned now) left out, is written as the run's own ``checkpoint.pt``
+    (atomically) where it is ahead of the one there, if any. Nothing is deleted: an old
+    population may still be another process's. Returns the runs given a state.
+
+    Every checkpoint read is checked first (:func:`~.folder.load_checkpoint`): one that
+    would run code raises ``ValueError`` naming it, before anything is written."""
+    if not populations.is_dir():
+        return []
+    wanted = {Path(r).resolve(): Path(r) for r in runs}
+    planned = {Path(h).resolve() for h in homes}
+    best: dict[Path, dict[str, Any]] = {}
+    for home in sorted(populations.iterdir()):
+        if home.resolve() in planned or not (home / CHECKPOINT).is_file():
+            continue
+        for name, state in load_checkpoint(home).get("members", {}).items():
+            run = (home / name).resolve()
+            if run in wanted and (run not in best or progress_of(state) > progress_of(best[run])):
+                best[run] = state
+    adopted = []
+    for run, state in best.items():
+        own = run / CHECKPOINT
+        if own.is_file() and progress_of(load_checkpoint(run)) >= progress_of(state):
+            continue
+        save_checkpoint(own, state)
+        adopted.append(wanted[run])
+    return adopted
