@@ -211,3 +211,20 @@ def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> 
     assert "; 1 of these runs counted from a resume part-way" in line
     assert "; 1 other finished run without the record)" in line
     assert compute_line(tmp_path, {"runs": runs[2:]}) is None
+
+
+def test_a_row_of_one_seed_shows_its_value_without_an_interval() -> None:
+    """The bootstrap of one value is that value: ``[x, x]`` would read as certainty, so a
+    row of one seed gives the value alone; two seeds and rows without a seed count (P of
+    improvement) keep their interval, NaN stays n/a."""
+    from pporpe.experiments.tables import fmt_ci
+
+    one = {"seeds": 1, "boot_value": 806.6, "boot_low": 806.6, "boot_high": 806.6}
+    assert fmt_ci(one, "boot") == "806.6 (1 seed, no CI)"
+    two = {**one, "seeds": 2, "boot_low": 504.0, "boot_high": 807.0}
+    assert fmt_ci(two, "boot") == "806.6 [504.0, 807.0]"
+    p = {"score_value": 0.5, "score_low": 0.25, "score_high": 0.75}
+    assert fmt_ci(p, "score", 2) == "0.50 [0.25, 0.75]"
+    assert fmt_ci({"seeds": 1, "past_value": 0.0006, "past_low": 0.0006,
+                   "past_high": 0.0006}, "past", 2, 100.0) == "0.06 (1 seed, no CI)"  # fmt: skip
+    assert fmt_ci({**one, "boot_value": float("nan")}, "boot") == "n/a"

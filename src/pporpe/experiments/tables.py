@@ -44,10 +44,14 @@ def fmt(x: float) -> str:
 
 
 def fmt_ci(row: dict[str, Any], name: str, digits: int = 1, scale: float = 1.0) -> str:
-    """``value [low, high]`` of a row's ``name_value|low|high`` (times ``scale``)."""
+    """``value [low, high]`` of a row's ``name_value|low|high`` (times ``scale``); a row of
+    one seed (``seeds`` 1) gives its value alone, ``value (1 seed, no CI)``: the bootstrap
+    of one value is that value, an interval of width 0 that would read as certainty."""
     v, lo, hi = (scale * row[f"{name}_{p}"] for p in ("value", "low", "high"))
     if math.isnan(v):
         return "n/a"
+    if row.get("seeds") == 1:
+        return f"{v:.{digits}f} (1 seed, no CI)"
     return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
 
