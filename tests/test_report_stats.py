@@ -215,8 +215,9 @@ def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> 
 
 def test_a_row_of_one_seed_shows_its_value_without_an_interval() -> None:
     """The bootstrap of one value is that value: ``[x, x]`` would read as certainty, so a
-    row of one seed gives the value alone; two seeds and rows without a seed count (P of
-    improvement) keep their interval, NaN stays n/a."""
+    row of one seed (a method's, or a comparison where either method has one) gives the
+    value alone; two seeds and rows without a seed count keep their interval, NaN stays
+    n/a."""
     from pporpe.experiments.tables import fmt_ci
 
     one = {"seeds": 1, "boot_value": 806.6, "boot_low": 806.6, "boot_high": 806.6}
@@ -224,7 +225,13 @@ def test_a_row_of_one_seed_shows_its_value_without_an_interval() -> None:
     two = {**one, "seeds": 2, "boot_low": 504.0, "boot_high": 807.0}
     assert fmt_ci(two, "boot") == "806.6 [504.0, 807.0]"
     p = {"score_value": 0.5, "score_low": 0.25, "score_high": 0.75}
-    assert fmt_ci(p, "score", 2) == "0.50 [0.25, 0.75]"
+    assert fmt_ci(p, "score", 2) == "0.50 [0.25, 0.75]"  # no count of seeds: as it is
+    compared = {**p, "score_n": (2, 3), "score_diff_value": 4.0, "score_diff_low": -1.0,
+                "score_diff_high": 9.0}  # fmt: skip
+    assert fmt_ci(compared, "score_diff") == "4.0 [-1.0, 9.0]"
+    alone = {**compared, "score_n": (1, 3), "score_diff_low": 4.0, "score_diff_high": 4.0}
+    assert fmt_ci(alone, "score", 2) == "0.50 (1 seed, no CI)"
+    assert fmt_ci(alone, "score_diff") == "4.0 (1 seed, no CI)"
     assert fmt_ci({"seeds": 1, "past_value": 0.0006, "past_low": 0.0006,
                    "past_high": 0.0006}, "past", 2, 100.0) == "0.06 (1 seed, no CI)"  # fmt: skip
     assert fmt_ci({**one, "boot_value": float("nan")}, "boot") == "n/a"

@@ -183,11 +183,11 @@ def test_partial_grid_one_seed_per_method_has_no_verdict(tmp_path: Path) -> None
     rows = claim_rows(tmp_path)
     assert len(rows) == 2
     for row in rows:
-        assert "| 1.00 [1.00, 1.00] |" in row  # P itself is still shown
+        assert "| 1.00 (1 seed, no CI) |" in row  # P itself is still shown, without a CI
         assert row.endswith("| too few seeds (n = 1; a verdict needs 5) |")
         assert "supported" not in row
     # The mean difference beside P: 30 - 10 and 30 - 20.
-    assert "| 20.0 [20.0, 20.0] |" in rows[0] and "| 10.0 [10.0, 10.0] |" in rows[1]
+    assert "| 20.0 (1 seed, no CI) |" in rows[0] and "| 10.0 (1 seed, no CI) |" in rows[1]
 
 
 def test_a_partial_grid_compares_the_seeds_both_methods_finished(tmp_path: Path) -> None:

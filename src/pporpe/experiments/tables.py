@@ -43,14 +43,25 @@ def fmt(x: float) -> str:
     return "n/a" if math.isnan(x) else f"{x:.1f}"
 
 
+def _seeds(row: dict[str, Any], name: str) -> int | None:
+    """The seeds behind a row's statistic ``name``: the row's ``seeds`` (a method's row), or
+    the fewer of the two methods' seeds compared (``<stat>_n`` of a comparison's row, for
+    ``<stat>`` and ``<stat>_diff``); None when the row does not say."""
+    if "seeds" in row:
+        return int(row["seeds"])
+    n = row.get(f"{name.removesuffix('_diff')}_n")
+    return min(n) if n else None
+
+
 def fmt_ci(row: dict[str, Any], name: str, digits: int = 1, scale: float = 1.0) -> str:
     """``value [low, high]`` of a row's ``name_value|low|high`` (times ``scale``); a row of
-    one seed (``seeds`` 1) gives its value alone, ``value (1 seed, no CI)``: the bootstrap
-    of one value is that value, an interval of width 0 that would read as certainty."""
+    one seed (:func:`_seeds`) gives its value alone, ``value (1 seed, no CI)``: the
+    bootstrap of one value is that value, an interval of width 0 that would read as
+    certainty."""
     v, lo, hi = (scale * row[f"{name}_{p}"] for p in ("value", "low", "high"))
     if math.isnan(v):
         return "n/a"
-    if row.get("seeds") == 1:
+    if _seeds(row, name) == 1:
         return f"{v:.{digits}f} (1 seed, no CI)"
     return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
