@@ -10,7 +10,8 @@ comes from a committed result file, never from a hand-copied number:
   ``pendulum_behaviour*.json``;
 * ``docs/results/throughput.md``: ``benchmarks/results/throughput*.json``;
 * ``docs/results/vs-sb3.md``: ``benchmarks/results/vs_sb3.json``;
-* ``docs/results/engines.md``: ``benchmarks/results/engine_shadow.json``;
+* ``docs/results/engines.md``: ``benchmarks/results/engine_shadow.json`` and
+  ``engine_divergence.json``;
 * ``docs/results/batch-mujoco.md``: ``results/batch-mujoco/REPORT.md`` once that grid's
   results are committed (until then a page that says it has not run yet);
 * the block of ``README.md`` between the ``results`` markers: per task the most conclusive
@@ -35,6 +36,7 @@ import ast
 import csv
 import json
 import re
+import statistics
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -911,6 +913,76 @@ def flips_lines(whole: dict[str, Any]) -> list[str]:
     ]
 
 
+DIVERGENCE = "benchmarks/results/engine_divergence.json"
+DIVERGENCE_FIGURE = "benchmarks/results/engine_divergence.png"
+
+
+def divergence_cells(row: dict[str, Any]) -> Row:
+    """One seed of one pair of benchmarks/results/engine_divergence.json, as table cells."""
+    gap, act = row["first_step_gap_above"], row["first_step_action_above"]
+    ev, jump = row["first_differing_event"], row["largest_one_step_jump_below_1e-3"]
+    rate = row["growth_log10_per_1000_steps"]
+    return [
+        str(row["seed"]),
+        *(f"{gap[lv]:,}" if gap[lv] else "-" for lv in ("1e-06", "0.0001", "0.01")),
+        f"{row['final_gap']:.2f}",
+        *(f"{act[lv]:,}" if act[lv] else "-" for lv in ("0.001", "0.1")),
+        f"{ev['kind']} at {ev['step']:,} (gap {ev['gap_before']:.0e})" if ev else "-",
+        f"{rate:.2f}" if rate is not None else "-",
+        f"x{jump['factor']:.0f} at {jump['step']:,}" if jump else "-",
+    ]
+
+
+def divergence_median(rows: list[dict[str, Any]], key: str, level: str) -> str:
+    """The median over seeds of a first-crossing step (a seed that never crossed counts as
+    later than all), or ``-`` when half the seeds never crossed."""
+    steps = sorted(r[key][level] or float("inf") for r in rows)
+    mid = statistics.median(steps)
+    return f"{mid:,.0f}" if mid != float("inf") else "-"
+
+
+def divergence_section(root: Path) -> list[str]:
+    """The engines page's second part: where two runs from the same seed part."""
+    data = read_json(root, DIVERGENCE)
+    task = TASKS.get(data["task"], data["task"])
+    head = ["seed", "gap > 1e-6", "> 1e-4", "> 1e-2", "gap at the end", "action > 1e-3", "> 1e-1",
+            "first discrete event that differs", "log10 gap / 1000 steps",
+            "largest one-step jump (gap < 1e-3)"]  # fmt: skip
+    lines = [
+        "## Where two runs from one seed part",
+        "",
+        f"`{DIVERGENCE}`: the fused engine and its twins learn {task} with the "
+        f"`{data['config']}` settings, each twin a population of its "
+        f"own with its own environments, from the same seeds ({data['episodes']} episodes "
+        "of every member, nothing copied between them). The twins: "
+        + "; ".join(f"**{name}**, {what}" for name, what in data["twins"].items())
+        + ". The seeds are those whose 200-episode scores lie furthest apart between the "
+        "engines. Per step: the gap, max|theta_twin - theta_fused| / max|theta_fused| over "
+        "both networks, and the actions' difference in units of the action range; the "
+        "tables give the first step at which each passes a level, the first step at which "
+        "a discrete event (the clip passed, an episode's end) differs, with the gap just "
+        "before it, the gap's growth while between 1e-5 and 1e-2, and its largest one-step "
+        "jump while below 1e-3.",
+        "",
+        machine_line(data["machine"], data["command"]),
+        "",
+    ]
+    for name, rows in data["pairs"].items():
+        lines += [f"The fused engine against {data['twins'][name]} (`{name}`):", "",
+                  *table(head, [divergence_cells(r) for r in rows]), ""]  # fmt: skip
+    gap, act = "first_step_gap_above", "first_step_action_above"
+    medians = [
+        f"`{name}`: gap above 1e-4 at step {divergence_median(rows, gap, '0.0001')}, above "
+        f"1e-2 at {divergence_median(rows, gap, '0.01')}, actions apart by 1e-1 at "
+        f"{divergence_median(rows, act, '0.1')}"
+        for name, rows in data["pairs"].items()
+    ]
+    lines += ["Medians over the seeds: " + "; ".join(medians) + ".", ""]
+    if (root / DIVERGENCE_FIGURE).exists():
+        lines += [f"![The gap along the runs, per seed and twin](../../{DIVERGENCE_FIGURE})", ""]
+    return lines
+
+
 def engines_page(root: Path) -> str:
     data = read_json(root, "benchmarks/results/engine_shadow.json")
     st, whole = data["settings"], data["windows"][0]
@@ -939,8 +1011,10 @@ def engines_page(root: Path) -> str:
         "",
         divergence_line(data),
         *flips_lines(whole),
+        "",
+        *divergence_section(root),
     ]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines).rstrip("\n") + "\n"
 
 
 # --- The columns of episodes.csv (docs/run-folders.md) -----------------------------------

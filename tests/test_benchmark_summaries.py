@@ -573,3 +573,75 @@ def test_cleanrl_side_by_side_needs_pporpe_and_gives_p(tmp_path: Path) -> None:
     # pporpe 3, 4, 6 against SB3 4, 4, 7: wins 6>4 twice, ties 4=4 twice (half each): 3 of 9
     assert row["p_pporpe_better_sb3"]["value"] == pytest.approx(3 / 9)
     assert "| 3 / 2 / 3 |" in cleanrl.summary_lines([row])[2]
+
+
+def _engine_divergence() -> Any:
+    import engine_divergence
+
+    return engine_divergence
+
+
+def test_engine_divergence_growth_jump_and_crossings_by_hand() -> None:
+    """A gap of 10^(-7 + 2t/1000): 2 decades per 1000 steps, crossing 1e-5 after step 1000
+    (1-based step 1002, the first above) and 1e-2 after step 2500; a factor-50 jump at one
+    step below 1e-3 is the largest, one above 1e-3 is not counted."""
+    ed = _engine_divergence()
+    t = np.arange(4000)
+    gap = 10.0 ** (-7 + 2 * t / 1000)
+    assert ed.first_index(gap > 1e-5) == 1002
+    assert ed.first_index(gap > 1e-2) == 2502
+    assert ed.first_index(gap > 1e3) is None
+    assert ed.growth_rate(gap) == pytest.approx(2.0)
+    assert ed.growth_rate(np.full(100, 1e-7)) is None  # never reaches the fitted range
+    jumpy = gap.copy()
+    jumpy[300:] *= 50  # at index 300: step 301
+    jumpy[3000:] *= 1000  # above 1e-3 already: not a jump that counts
+    jump = ed.largest_jump(jumpy)
+    assert jump["step"] == 301 and jump["factor"] == pytest.approx(50 * 10 ** (2 / 1000))
+    assert jump["gap_before"] == pytest.approx(gap[299])
+
+
+def test_engine_divergence_control_starts_one_ulp_away_and_parts_slowly() -> None:
+    """The control twin: every parameter exactly one float32 step from the fused engine's
+    (the value network's target moved with it), so its first gap is at most float32's
+    relative rounding; over 30 steps of InvertedPendulum with the test bed's learner both
+    twins stay within 1e-3 of the fused engine's parameters (they part by amplification,
+    not at once) and no discrete event differs while the gap is below 1e-4."""
+    import torch
+
+    ed = _engine_divergence()
+    lead = ed.EngineRun.start("fused", "pendulum", "testbed", [1, 2])
+    twin = ed.EngineRun.start("fused", "pendulum", "testbed", [1, 2])
+    before = twin.learner.state.params.clone()
+    twin.nudge(0)
+    after = twin.learner.state.params
+    up = torch.nextafter(before, torch.full_like(before, np.inf))
+    down = torch.nextafter(before, torch.full_like(before, -np.inf))
+    assert bool(((after == up) | (after == down)).all()) and bool((after != before).all())
+    np.testing.assert_array_equal((after[1] == up[1]).numpy(), (after[2] == up[2]).numpy())
+    pf, pt = lead.params(), twin.params()
+    first = np.abs(pt - pf).max(1) / np.abs(pf).max(1)
+    assert (first > 0).all() and (first <= 2.0**-23).all()
+    traces = [ed.SeedTrace(1), ed.SeedTrace(2)]
+    for step in range(1, 31):
+        ed.compare(lead, twin, traces, step, 0.1, (*lead.step(), *twin.step()))
+    for tr in traces:
+        assert max(tr.gap) < 1e-3
+        assert tr.first_event is None or tr.first_event["gap_before"] > 1e-4
+    for run in (lead, twin):
+        for env in run.envs:
+            env.close()
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [(["--episodes", "0"], "--episodes"), (["--seeds", "0"], "--seeds"),
+     (["--against", "numpy"], "--against")],  # fmt: skip
+)
+def test_engine_divergence_refuses_bad_input_before_any_work(
+    argv: list[str], named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ed = _engine_divergence()
+    with pytest.raises(SystemExit):
+        ed.main(argv)
+    assert named in capsys.readouterr().err

@@ -27,6 +27,7 @@ SOURCES = [
     "results/headline.json",
     "benchmarks/results/vs_sb3.json",
     "benchmarks/results/engine_shadow.json",
+    "benchmarks/results/engine_divergence.json",
     "docs/run-folders.md",
     "docs/batch.md",
     "benchmarks/results/batch_population.json",
