@@ -98,6 +98,28 @@ def test_a_stop_checkpoints_at_that_step_and_resumes_to_the_same_numbers(
         assert a.evaluation == b.evaluation
 
 
+def test_a_population_home_restarted_with_another_queue_continues_the_runs_it_shares(
+    tmp_path: Path,
+) -> None:
+    """A population of two stopped part-way, then its home given a queue of three runs (a
+    seed added): the saved packing is not this queue's, yet the two runs it holds go on
+    from their saved states (their first records are the saved ones, wall times included)
+    to the numbers of an uninterrupted queue, and the new run starts fresh."""
+    root = tmp_path / "home"
+    with pytest.raises(Interrupted):
+        run_queue(online_runs(root), capacity=2, home=root, stop=stop_after(70))
+    saved = load_checkpoint(root)["members"]
+    extra = (replace(online_runs(root)[0][0], seed=2), root / "s2")
+    again = run_queue([*online_runs(root), extra], capacity=2, home=root)
+    full = run_queue(online_runs(tmp_path / "full"), capacity=2, home=tmp_path / "full")
+    for (_, run), a, b in zip(online_runs(root), again[:2], full, strict=True):
+        kept = saved[run.name]["records"]
+        assert 0 < a.resumed_from == len(kept) < len(b.records)
+        assert [r.wall_time for r in a.records[: len(kept)]] == [r["wall_time"] for r in kept]
+        assert strip_time(a.records) == strip_time(b.records)
+    assert again[2].resumed_from == 0 and len(again[2].records) == 6
+
+
 # ------------------------------------------------------------------------------------
 # The commands, in a subprocess, as a user sees them
 # ------------------------------------------------------------------------------------

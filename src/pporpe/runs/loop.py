@@ -273,8 +273,10 @@ class _Queue:
         self.population, self.results = population, results
         self.packing = Packing([None] * capacity, deque(pending))
         self.members: dict[str, dict[str, Any]] = {}
-        if population is not None and (saved := population.restore(pending)) is not None:
-            self.packing, self.members = saved
+        if population is not None:
+            packing, self.members = population.restore(pending)
+            if packing is not None:
+                self.packing = packing
         self.names = population.names if population is not None else [str(d) for d in dirs]
         self.trainer = kind.make_trainer(cfgs[pending[0]], len(self.packing.slots))
         self.books: dict[int, _Run] = {}

@@ -68,15 +68,21 @@ class PopulationCheckpoint:
         """The runs by name: their folders relative to the home folder."""
         self._full_paths = [str(d) for d in dirs]
 
-    def restore(self, pending: list[int]) -> tuple[Packing, dict[str, dict[str, Any]]] | None:
-        """The saved packing (restricted to the ``pending`` runs) and the members' states
-        by run name, if the home holds a checkpoint of this queue's runs; else None."""
+    def restore(
+        self, pending: list[int]
+    ) -> tuple[Packing | None, dict[str, dict[str, Any]]]:
+        """What the home's checkpoint holds for this queue: the saved packing (restricted to
+        the ``pending`` runs; None when the checkpoint is of another queue of runs, or there
+        is none) and the states of this queue's runs by run name (a checkpoint of another
+        queue in this home, say of other seeds, still gives the states of the runs both
+        queues share)."""
         if not self.file.is_file():
-            return None
+            return None, {}
         saved = load_checkpoint(self.file.parent)
         spelling = packing_names(saved.get("runs"), self.names, self._full_paths)
         if spelling is None:
-            return None
+            ours = {self.names[i] for i in pending}
+            return None, {k: v for k, v in saved["members"].items() if k in ours}
         by_dir = {name: i for i, name in enumerate(spelling)}
         slots = [by_dir.get(d) if d else None for d in saved["slots"]]
         packing = Packing(
