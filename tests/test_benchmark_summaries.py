@@ -635,8 +635,11 @@ def test_engine_divergence_control_starts_one_ulp_away_and_parts_slowly() -> Non
 
 @pytest.mark.parametrize(
     ("argv", "named"),
-    [(["--episodes", "0"], "--episodes"), (["--seeds", "0"], "--seeds"),
-     (["--against", "numpy"], "--against")],  # fmt: skip
+    [
+        (["--episodes", "0"], "--episodes"),
+        (["--seeds", "0"], "--seeds"),
+        (["--against", "numpy"], "--against"),
+    ],
 )
 def test_engine_divergence_refuses_bad_input_before_any_work(
     argv: list[str], named: str, capsys: pytest.CaptureFixture[str]
