@@ -17,7 +17,7 @@ import pytest
 
 from pporpe.batch import BatchConfig
 from pporpe.cli import main
-from pporpe.experiments.grid import load_spec, parse_spec
+from pporpe.experiments.grid import load_spec, parse_spec, select_runs
 from pporpe.experiments.progress import RECENT_EPISODES, GridProgress, RunProgress, run_progress
 from pporpe.experiments.report import mean_ci, write_report
 from pporpe.experiments.reproduce import reproduce
@@ -403,13 +403,15 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
         assert got == records_of(ref, run.key)
 
 
-def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(tmp_path: Path) -> None:
+def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The population's home folder is named after the runs it packs, so a grid resumed
     with a filter (or after a run finished) plans a new home: the runs in flight in the
     old home's checkpoint must go on from there, not start again. Killed mid-way, then
-    resumed with ``--seeds 0`` (the seed of the two runs in the slots): their first
-    records are the checkpoint's very rows (the same wall times), every record is there
-    once, and the numbers are the uninterrupted grid's."""
+    resumed with seed 0 alone (the seed of the two runs in the slots): it says so, their
+    first records are the checkpoint's very rows (the same wall times), every record is
+    there once, and the numbers are the uninterrupted grid's."""
     from pporpe.runs.folder import load_checkpoint
 
     spec_path = write_spec(tmp_path, POP_SPEC, "pop.toml")
@@ -435,8 +437,10 @@ def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(tmp_path:
     assert sorted(Path(d).parent.name for d in in_flight) == ["ppo", "rpe"]
     assert {Path(d).name for d in in_flight} == {"seed0"}
     assert min(len(m["records"]) for m in in_flight.values()) >= 1
-    proc = _launch(spec_path, out, *args, "--seeds", "0")
-    assert proc.wait(timeout=300) == 0
+    capsys.readouterr()
+    chunk = select_runs(spec, seeds=[0])
+    assert reproduce(chunk, out, workers=1, population=2, whole=spec, checkpoint_seconds=0).ok
+    assert "2 runs in flight in populations packed before" in capsys.readouterr().err
     homes = sorted(p.parent.name for p in (out / "populations").glob("*/population.json"))
     assert len(homes) == 2  # the old home, and the one the filtered grid planned
     for run_dir, member in in_flight.items():

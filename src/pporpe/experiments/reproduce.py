@@ -20,6 +20,7 @@ and ``grid.json`` (:mod:`.merge`).
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from ..envs import make_env
 from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.folder import CHECKPOINT, check_checkpoint
 from ..runs.population_checkpoint import adopt_orphaned_states
+from ..text import count
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
 from .merge import merged_grid_summary, write_grid_summary, write_status
@@ -217,9 +219,15 @@ def reproduce(
     n_workers = workers or os.cpu_count() or 1
     jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
     _check_checkpoints(jobs)
-    adopt_orphaned_states(
+    adopted = adopt_orphaned_states(
         out_dir / POPULATIONS, [j.home for j in jobs], [d for j in jobs for d, _ in j.runs]
     )
+    if adopted and progress:
+        print(
+            f"{count(len(adopted), 'run')} in flight in populations packed before "
+            f"(under {out_dir / POPULATIONS}) go on from their checkpoints",
+            file=sys.stderr,
+        )
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
