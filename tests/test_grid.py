@@ -480,6 +480,10 @@ def test_adopt_orphaned_states_hands_each_run_its_most_advanced_state(tmp_path: 
     assert all((pops / h / "checkpoint.pt").exists() for h in ("old1", "old2", "planned"))
     assert adopt_orphaned_states(pops, [], [runs["a"]]) == [runs["a"]]  # now the 9 of planned
     assert adopt_orphaned_states(tmp_path / "none", [], [runs["a"]]) == []
+    (pops / "old1" / "checkpoint.pt").write_bytes(b"not a checkpoint")  # read only when needed
+    assert adopt_orphaned_states(pops, [], []) == []
+    with pytest.raises(ValueError, match="old1"):
+        adopt_orphaned_states(pops, [], [runs["a"]])
 
 
 def test_progress_into_a_file_draws_a_line_per_change_and_on_a_terminal_every_poll(

@@ -130,7 +130,7 @@ def adopt_orphaned_states(
 
     Every checkpoint read is checked first (:func:`~.folder.load_checkpoint`): one that
     would run code raises ``ValueError`` naming it, before anything is written."""
-    if not populations.is_dir():
+    if not runs or not populations.is_dir():
         return []
     wanted = {Path(r).resolve(): Path(r) for r in runs}
     planned = {Path(h).resolve() for h in homes}
