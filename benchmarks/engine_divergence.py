@@ -72,7 +72,6 @@ class EngineRun:
     learner: Any
     envs: list[Any]
     actions: np.ndarray
-    returns: np.ndarray
     episodes: np.ndarray
 
     @classmethod
@@ -97,8 +96,7 @@ class EngineRun:
         )
         first = np.stack([e.reset(seed=s)[0] for e, s in zip(envs, seeds, strict=True)])
         actions = learner.begin_episode(list(range(len(seeds))), first)
-        K = len(seeds)
-        return cls(learner, envs, actions, np.zeros(K), np.zeros(K, dtype=int))
+        return cls(learner, envs, actions, np.zeros(len(seeds), dtype=int))
 
     def step(self) -> tuple[np.ndarray, np.ndarray]:
         """One transition and learning step of every member: ``(ratio, ended)`` ``[K]``."""
@@ -107,7 +105,6 @@ class EngineRun:
         stats, self.actions = self.learner.step(
             rew.astype(np.float32), obs.astype(np.float32), term, trunc
         )
-        self.returns += rew
         ended = term | trunc
         self._begin(np.nonzero(ended)[0])
         return stats.ratio.double().numpy(), ended
@@ -199,14 +196,17 @@ def largest_jump(gap: np.ndarray) -> dict[str, float] | None:
 
 def compare(
     fused: EngineRun,
+    pf: np.ndarray,
     twin: EngineRun,
     traces: list[SeedTrace],
     t: int,
     eps: float,
     events: tuple[np.ndarray, ...],
 ) -> None:
-    """Append step ``t``'s gaps to each seed's trace; note its first differing event."""
-    pf, pt = fused.params(), twin.params()
+    """Append step ``t``'s gaps to each seed's trace (``pf``: the fused engine's
+    :meth:`EngineRun.params`, read once per step for every twin); note its first differing
+    event."""
+    pt = twin.params()
     gap = np.abs(pt - pf).max(1) / np.maximum(np.abs(pf).max(1), TINY)
     span = np.asarray(fused.learner.action_map.high - fused.learner.action_map.low)
     act = (np.abs(twin.actions - fused.actions) / np.maximum(span, TINY)).max(1)
@@ -246,8 +246,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     while fused.episodes.min() < args.episodes:
         t += 1
         lead = fused.step()
+        pf = fused.params()
         for name, twin in twins.items():
-            compare(fused, twin, traces[name], t, eps, (*lead, *twin.step()))
+            compare(fused, pf, twin, traces[name], t, eps, (*lead, *twin.step()))
     return {
         "task": args.task,
         "config": args.config,

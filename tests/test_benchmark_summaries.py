@@ -624,7 +624,8 @@ def test_engine_divergence_control_starts_one_ulp_away_and_parts_slowly() -> Non
     assert (first > 0).all() and (first <= 2.0**-23).all()
     traces = [ed.SeedTrace(1), ed.SeedTrace(2)]
     for step in range(1, 31):
-        ed.compare(lead, twin, traces, step, 0.1, (*lead.step(), *twin.step()))
+        events = (*lead.step(), *twin.step())
+        ed.compare(lead, lead.params(), twin, traces, step, 0.1, events)
     for tr in traces:
         assert max(tr.gap) < 1e-3
         assert tr.first_event is None or tr.first_event["gap_before"] > 1e-4
