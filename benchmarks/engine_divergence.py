@@ -50,6 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
+from lockstep import EngineRun
 from testbed import TASKS, config_arg, positive_seeds, settings_for
 
 OUT = Path(__file__).resolve().parent / "results" / "engine_divergence.json"
@@ -63,76 +64,6 @@ TWINS = {
 }
 """The fused engine's twins: the engine under test, and the control, whose difference from
 the fused engine is one rounding at the start and no rule at all."""
-
-
-@dataclass
-class EngineRun:
-    """One engine's population and its environments, stepping on its own."""
-
-    learner: Any
-    envs: list[Any]
-    actions: np.ndarray
-    episodes: np.ndarray
-
-    @classmethod
-    def start(cls, engine: str, task: str, config: str, seeds: list[int]) -> EngineRun:
-        """A fresh population of ``engine`` with ``config``'s settings, one member per seed,
-        every member's first episode begun."""
-        from pporpe.envs import make_env
-        from pporpe.online import OnlineConfig, PopulationLearner
-
-        settings = settings_for(config)
-        settings.pop("engine", None)
-        envs = [make_env(TASKS[task], seed=s) for s in seeds]
-        space = envs[0]
-        cfg = OnlineConfig(**settings)
-        learner = PopulationLearner(
-            space.observation_space.shape[0],
-            space.action_space.low,
-            space.action_space.high,
-            [cfg] * len(seeds),
-            seeds,
-            engine=engine,
-        )
-        first = np.stack([e.reset(seed=s)[0] for e, s in zip(envs, seeds, strict=True)])
-        actions = learner.begin_episode(list(range(len(seeds))), first)
-        return cls(learner, envs, actions, np.zeros(len(seeds), dtype=int))
-
-    def step(self) -> tuple[np.ndarray, np.ndarray]:
-        """One transition and learning step of every member: ``(ratio, ended)`` ``[K]``."""
-        rows = [env.step(a) for env, a in zip(self.envs, self.actions, strict=True)]
-        obs, rew, term, trunc = (np.asarray(x) for x in list(zip(*rows, strict=True))[:4])
-        stats, self.actions = self.learner.step(
-            rew.astype(np.float32), obs.astype(np.float32), term, trunc
-        )
-        ended = term | trunc
-        self._begin(np.nonzero(ended)[0])
-        return stats.ratio.double().numpy(), ended
-
-    def _begin(self, idx: np.ndarray) -> None:
-        if len(idx) == 0:
-            return
-        first = np.stack([self.envs[k].reset()[0] for k in idx])
-        self.actions = self.actions.copy()
-        self.actions[idx] = self.learner.begin_episode(idx, first)
-        self.episodes[idx] += 1
-
-    def nudge(self, seed: int) -> None:
-        """Move every parameter one float32 step (ulp) up or down, the direction drawn
-        from ``seed`` (the same for the value network and its target): the control, a
-        difference of the size of one rounding."""
-        import torch
-
-        p = self.learner.state.params
-        up = torch.from_numpy(np.random.default_rng(seed).random(p[0].shape) < 0.5)
-        toward = torch.where(up, torch.full_like(p[0], np.inf), torch.full_like(p[0], -np.inf))
-        for i in range(p.shape[0]):
-            p[i] = torch.nextafter(p[i], toward)
-
-    def params(self) -> np.ndarray:
-        """Policy and value parameters, float64 ``[K, elements]``."""
-        p = self.learner.state.params[:2]
-        return p.double().movedim(1, 0).reshape(p.shape[1], -1).numpy()
 
 
 @dataclass

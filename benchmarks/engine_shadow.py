@@ -45,7 +45,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
-from testbed import TASKS, config_arg, positive_seeds, settings_for
+from lockstep import EngineRun, population
+from testbed import TASKS, config_arg, positive_seeds
 
 OUT = Path(__file__).resolve().parent / "results" / "engine_shadow.json"
 STATS = ("delta", "adv", "ratio", "divergence", "trace_decay")
@@ -100,70 +101,52 @@ class Shadowed:
     """A fused population that learns and a torch population that shadows single steps."""
 
     def __init__(self, task: str, config: str, seeds: list[int], compile_update: bool) -> None:
-        from pporpe.envs import make_env
-        from pporpe.online import OnlineConfig, PopulationLearner
-
-        settings = settings_for(config)
-        settings.pop("engine", None)
-        self.envs = [make_env(TASKS[task], seed=s) for s in seeds]
-        env: Any = self.envs[0]
-        cfg = OnlineConfig(**settings)
-        args = (env.observation_space.shape[0], env.action_space.low, env.action_space.high)
-        K = len(seeds)
-        self.lead = PopulationLearner(*args, [cfg] * K, seeds, engine="fused")
-        self.shadow = PopulationLearner(
-            *args, [cfg] * K, seeds, engine="torch", compile_update=compile_update
+        self.lead = EngineRun.start("fused", task, config, seeds)
+        self.shadow = population(
+            "torch", self.lead.envs[0], config, seeds, compile_update=compile_update
         )
-        self.episode = np.zeros(K, dtype=int)
         self.returns: list[list[float]] = [[] for _ in seeds]
-        self._ret = np.zeros(K)
-        self._actions = self.lead.begin_episode(
-            list(range(K)),
-            np.stack([e.reset(seed=s)[0] for e, s in zip(self.envs, seeds, strict=True)]),
-        )
+        self._ret = np.zeros(len(seeds))
 
-    def _transition(self) -> tuple[np.ndarray, ...]:
-        rows = [env.step(a) for env, a in zip(self.envs, self._actions, strict=True)]
-        obs, rew, term, trunc = (np.asarray(x) for x in list(zip(*rows, strict=True))[:4])
-        return rew.astype(np.float32), obs.astype(np.float32), term, trunc
+    @property
+    def episode(self) -> np.ndarray:
+        """Episodes every member of the lead has finished ``[K]``."""
+        return self.lead.episodes
 
     def step(self, compare: bool) -> dict[str, Any] | None:
         """One learning step of the lead; with ``compare``, the shadow's from the same
         state too, and the record of their discrepancies."""
-        rew, obs, term, trunc = self._transition()
+        rew, obs, term, trunc = self.lead.transition()
         record = None
         if compare:
-            before = self.lead.state_dict()
+            before = self.lead.learner.state_dict()
             self.shadow.load_state_dict(before)
             st_t, act_t = self.shadow.step(rew, obs, term, trunc)
-        st_f, self._actions = self.lead.step(rew, obs, term, trunc)
+        st_f = self.lead.learn(rew, obs, term, trunc)
         if compare:
-            after_f, after_t = self.lead.state_dict(), self.shadow.state_dict()
-            size = np.maximum(np.abs(self._actions).max(1), TINY)
+            after_f, after_t = self.lead.learner.state_dict(), self.shadow.state_dict()
+            size = np.maximum(np.abs(self.lead.actions).max(1), TINY)
             record = {
                 "fused": np.stack([getattr(st_f, n).double().numpy() for n in STATS]),
                 "torch": np.stack([getattr(st_t, n).double().numpy() for n in STATS]),
-                "action": np.abs(act_t - self._actions).max(1) / size,
+                "action": np.abs(act_t - self.lead.actions).max(1) / size,
                 "buffers": change_discrepancy(before["state"], after_f["state"], after_t["state"]),
                 "flips": sign_flips(after_f["state"], after_t["state"]),
                 "episode": self.episode.copy(),
             }
         self._ret += rew
-        self._end_episodes(term | trunc)
+        self._note_returns(term | trunc)
+        self.lead.end_episodes(term | trunc)
         return record
 
-    def _end_episodes(self, ended: np.ndarray) -> None:
-        idx = np.nonzero(ended)[0]
-        if len(idx) == 0:
-            return
-        first = []
-        for k in idx:
+    def _note_returns(self, ended: np.ndarray) -> None:
+        for k in np.nonzero(ended)[0]:
             self.returns[k].append(float(self._ret[k]))
-            self._ret[k], self.episode[k] = 0.0, self.episode[k] + 1
-            first.append(self.envs[k].reset()[0])
-        acts = self.lead.begin_episode(idx, np.stack(first))
-        self._actions = self._actions.copy()
-        self._actions[idx] = acts
+            self._ret[k] = 0.0
+
+    def close(self) -> None:
+        """Close the lead's environments."""
+        self.lead.close()
 
 
 def fix_mmap_threshold() -> None:

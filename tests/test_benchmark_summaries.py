@@ -482,8 +482,27 @@ def test_engine_shadow_agrees_to_rounding_on_its_first_steps() -> None:
     assert max(ratio) < 1e-5
     summary = es.summarise(records, windows=1, episodes=1000)
     assert summary["windows"][0]["compared"] == 80
-    for env in run.envs:
-        env.close()
+    run.close()
+
+
+def test_engine_shadow_leaves_the_lead_on_its_own_path() -> None:
+    """The shadow, loaded with the lead's state every step, never changes the lead: after
+    30 compared steps the lead's parameters and actions are bit for bit those of a fused
+    population run alone from the same seeds (:class:`lockstep.EngineRun`)."""
+    es = _engine_shadow()
+    import lockstep
+
+    shadowed = es.Shadowed("pendulum", "testbed", [1, 2], compile_update=False)
+    alone = lockstep.EngineRun.start("fused", "pendulum", "testbed", [1, 2])
+    start = alone.params()
+    for _ in range(30):
+        shadowed.step(compare=True)
+        alone.step()
+    np.testing.assert_array_equal(shadowed.lead.params(), alone.params())
+    np.testing.assert_array_equal(shadowed.lead.actions, alone.actions)
+    assert not np.array_equal(alone.params(), start)  # it learned: the test can fail
+    shadowed.close()
+    alone.close()
 
 
 def test_engine_shadow_sign_flips_by_hand() -> None:
@@ -629,9 +648,8 @@ def test_engine_divergence_control_starts_one_ulp_away_and_parts_slowly() -> Non
     for tr in traces:
         assert max(tr.gap) < 1e-3
         assert tr.first_event is None or tr.first_event["gap_before"] > 1e-4
-    for run in (lead, twin):
-        for env in run.envs:
-            env.close()
+    lead.close()
+    twin.close()
 
 
 @pytest.mark.parametrize(
