@@ -152,7 +152,7 @@ def compare(
                 "step": t,
                 "kind": "clip" if clip_f[k] != clip_t[k] else "episode end",
                 "ratio_fused": float(ratio_f[k]),
-                "ratio_torch": float(ratio_t[k]),
+                "ratio_twin": float(ratio_t[k]),
                 "gap_before": previous,
             }
 
