@@ -450,6 +450,35 @@ def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(
         assert head == [float(r["wall_time"]) for r in member["records"]]
         assert [r.episode for r in got] == list(range(30))
         assert records_of(out, key) == records_of(ref, key)
+    (old_home,) = [p.parent for p in old]
+    assert (old_home / "checkpoint.pt").exists()  # its seed-1 runs are still to train
+    assert reproduce(spec, out, workers=1, population=2, checkpoint_seconds=0).ok
+    assert "removed the checkpoints of 1 population packed before" in capsys.readouterr().err
+    assert not list((out / "populations").glob("*/checkpoint.pt"))
+    assert (old_home / "population.json").exists()
+
+
+def test_finished_homes_lists_old_populations_whose_runs_are_all_done(tmp_path: Path) -> None:
+    """A population folder is finished when every run its population.json names has
+    done.json; one without a checkpoint, with a run unfinished, or with an unreadable
+    population.json is not listed."""
+    from pporpe.runs.population_checkpoint import finished_homes
+
+    pops = tmp_path / "out" / "populations"
+    for name, done in (("a", True), ("b", True), ("c", False)):
+        (tmp_path / "out" / "task" / name).mkdir(parents=True)
+        if done:
+            (tmp_path / "out" / "task" / name / "done.json").write_text("{}")
+    homes = {"all-done": ["a", "b"], "one-left": ["a", "c"], "no-checkpoint": ["a"],
+             "garbled": None, "empty": []}  # fmt: skip
+    for home, runs in homes.items():
+        (pops / home).mkdir(parents=True)
+        if home != "no-checkpoint":
+            (pops / home / "checkpoint.pt").write_bytes(b"")
+        text = "{" if runs is None else json.dumps({"runs": [f"../../task/{r}" for r in runs]})
+        (pops / home / "population.json").write_text(text)
+    assert finished_homes(pops) == [pops / "all-done"]
+    assert finished_homes(tmp_path / "missing") == []
 
 
 def test_adopt_orphaned_states_hands_each_run_its_most_advanced_state(tmp_path: Path) -> None:

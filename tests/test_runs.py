@@ -378,6 +378,26 @@ def test_queue_refills_slots_and_resumes_with_the_same_packing(tmp_path: Path) -
         run_queue(queue(tmp_path / "c"), capacity=2)
 
 
+def test_a_finished_queue_deletes_its_population_checkpoint_a_failed_one_keeps_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Once every run of a population has finished, its checkpoint holds nothing a run
+    needs (each run keeps its own final one): it is deleted, population.json stays. With a
+    run failed (non-finite parameters), the checkpoint stays."""
+    register_kind(CountKind())
+    runs = three_runs(tmp_path / "a")
+    assert all(r.error is None for r in run_queue(runs, capacity=2, home=tmp_path / "a"))
+    assert not (tmp_path / "a" / CHECKPOINT).exists()
+    assert json.loads((tmp_path / "a" / "population.json").read_text())["queue"] == []
+    assert all((d / CHECKPOINT).is_file() for _, d in runs)
+    monkeypatch.setattr(
+        CountTrainer, "parameters_finite", lambda self, slot: self.runs[slot]["cfg"].seed != 2
+    )
+    failed = run_queue(three_runs(tmp_path / "b"), capacity=2, home=tmp_path / "b")
+    assert [r.error is not None for r in failed] == [False, True, False]
+    assert (tmp_path / "b" / CHECKPOINT).is_file()
+
+
 def test_a_population_checkpoint_of_pporpe_0_4_0_with_full_paths_resumes(tmp_path: Path) -> None:
     """Up to pporpe 0.4.0 the population checkpoint named run folders by their full paths;
     such a checkpoint still resumes where it stopped."""

@@ -30,7 +30,7 @@ from typing import Any
 from ..envs import make_env
 from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.folder import CHECKPOINT, check_checkpoint
-from ..runs.population_checkpoint import adopt_orphaned_states
+from ..runs.population_checkpoint import adopt_orphaned_states, finished_homes
 from ..text import count
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
@@ -138,6 +138,22 @@ def _check_checkpoints(jobs: list[Job]) -> None:
                 check_checkpoint(path)
 
 
+def _discard_finished_populations(populations: Path, progress: bool) -> None:
+    """Delete the checkpoints of the populations whose runs have all finished
+    (:func:`~pporpe.runs.population_checkpoint.finished_homes`): a population discards its
+    own when its last run finishes, so these are left by a grid packed differently before
+    (its runs went on in other populations); they hold nothing a run needs."""
+    finished = finished_homes(populations)
+    for home in finished:
+        (home / CHECKPOINT).unlink(missing_ok=True)
+    if finished and progress:
+        print(
+            f"removed the checkpoints of {count(len(finished), 'population')} packed before "
+            f"(under {populations}): all their runs are done",
+            file=sys.stderr,
+        )
+
+
 def _run_jobs(
     jobs: list[Job], backend: str, workers: int, address: str | None,
     bar: GridProgress, seconds: tuple[float, float], stop: Callable[[], bool] | None,
@@ -196,8 +212,9 @@ def reproduce(
     at a time by one worker (:func:`~.planning.plan_jobs`); a run in flight in a population
     that this call no longer plans (some runs finished since, or the filter or the worker
     count changed) resumes from that population's checkpoint
-    (:func:`~pporpe.runs.population_checkpoint.adopt_orphaned_states`); the checkpoints their
-    ``checkpoint_every`` asks for are written at most every ``checkpoint_seconds``. Whatever
+    (:func:`~pporpe.runs.population_checkpoint.adopt_orphaned_states`), and at the end the
+    checkpoints of populations whose runs have all finished are deleted; the checkpoints
+    their ``checkpoint_every`` asks for are written at most every ``checkpoint_seconds``. Whatever
     the count, every run is also checkpointed by time: after a quarter of
     ``checkpoint_within`` seconds, half of it later, then every ``checkpoint_within``
     seconds (:mod:`pporpe.runs.cadence`). ``status.json`` in ``out`` counts the runs of the
@@ -240,6 +257,7 @@ def reproduce(
     bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets,
                        step_budgets=step_budgets)  # fmt: skip
     results = _run_jobs(jobs, backend, n_workers, address, bar, seconds, stop)
+    _discard_finished_populations(out_dir / POPULATIONS, progress)
 
     outcome = _outcome(spec, out_dir, skipped, results, t0)
     wall = outcome.wall_time if jobs else 0.0

@@ -566,22 +566,24 @@ def run_queue(
     finishes. Returns one result per run, in order.
 
     ``home`` (required when ``capacity`` > 1) holds the population's checkpoint and
-    ``population.json``. A checkpoint is due when a run's ``checkpoint_every`` count asks
-    for one, written at most every ``checkpoint_seconds`` (0: whenever asked), or by time,
-    whatever the count: after a quarter of ``checkpoint_within`` seconds (default
-    :data:`~.cadence.CHECKPOINT_WITHIN_S`, 2 minutes), half of it later, then every
-    ``checkpoint_within`` seconds (``math.inf``: by count only; :mod:`.cadence`); every run
-    also gets one when it finishes. ``live_seconds``: write each busy run's
-    ``progress.json`` that often (None: never; a grid's bar reads it). ``on_episode`` is called
-    after every episode, ``on_chunk`` after every unit of work of a run. ``num_threads``:
-    torch's intra-op threads while training (1: the setting under which the same seed gives
-    the same numbers), the caller's setting restored when the call returns. (One setting
-    for every call: a kernel compiled by ``torch.compile`` under one thread count crashed
-    when run under another.) Exceptions other than a run's own failure stop the queue (each
-    run keeps its last checkpoint). ``stop`` is asked after every unit of work; when it
-    returns True, every busy run is checkpointed at that step and
-    :class:`~pporpe.runs.stopping.Interrupted` is raised (``pporpe train`` and grids pass
-    :func:`~pporpe.runs.stopping.stop_on_signals`' request: Ctrl-C or SIGTERM).
+    ``population.json``; the checkpoint is deleted once every run has finished (each run
+    keeps its own final checkpoint; after a failure it stays). A checkpoint is due when a
+    run's ``checkpoint_every`` count asks for one, written at most every
+    ``checkpoint_seconds`` (0: whenever asked), or by time, whatever the count: after a
+    quarter of ``checkpoint_within`` seconds (default :data:`~.cadence.CHECKPOINT_WITHIN_S`,
+    2 minutes), half of it later, then every ``checkpoint_within`` seconds (``math.inf``: by
+    count only; :mod:`.cadence`); every run also gets one when it finishes.
+    ``live_seconds``: write each busy run's ``progress.json`` that often (None: never; a
+    grid's bar reads it). ``on_episode`` is called after every episode, ``on_chunk`` after
+    every unit of work of a run. ``num_threads``: torch's intra-op threads while training
+    (1: the setting under which the same seed gives the same numbers), the caller's setting
+    restored when the call returns. (One setting for every call: a kernel compiled by
+    ``torch.compile`` under one thread count crashed when run under another.) Exceptions
+    other than a run's own failure stop the queue (each run keeps its last checkpoint).
+    ``stop`` is asked after every unit of work; when it returns True, every busy run is
+    checkpointed at that step and :class:`~pporpe.runs.stopping.Interrupted` is raised
+    (``pporpe train`` and grids pass :func:`~pporpe.runs.stopping.stop_on_signals`' request:
+    Ctrl-C or SIGTERM).
     """
     _check_numbers(num_threads, checkpoint_seconds, checkpoint_within)
     if not runs:
@@ -606,6 +608,8 @@ def run_queue(
         with _torch_threads(num_threads):
             queue = _Queue(kind, cfgs, dirs, pending, slots, population, hooks, results)
             queue.run()
+        if population is not None and all(results[i].error is None for i in pending):
+            population.discard()
     return [results[i] for i in range(len(runs))]
 
 

@@ -13,10 +13,15 @@ under new home folders. The runs in flight in an old home's checkpoint keep thei
 there: :func:`adopt_orphaned_states` hands each of them to its run folder, and the run
 loop resumes a run from the most advanced of its population's state and its own
 checkpoint (:func:`progress_of`).
+
+A queue whose runs have all finished deletes its checkpoint (:meth:`PopulationCheckpoint.discard`;
+each run keeps its own final one) and keeps ``population.json``; a grid deletes the
+checkpoints of old homes whose runs have all finished since (:func:`finished_homes`).
 """
 
 from __future__ import annotations
 
+import json
 import os
 from collections import deque
 from collections.abc import Collection
@@ -33,6 +38,7 @@ __all__ = [
     "Packing",
     "PopulationCheckpoint",
     "adopt_orphaned_states",
+    "finished_homes",
     "progress_of",
 ]
 
@@ -100,6 +106,12 @@ class PopulationCheckpoint:
         """``population.json``: the packing, readable."""
         atomic_write_json(self.mirror, packing.as_dict(self.names))
 
+    def discard(self) -> None:
+        """Delete the checkpoint (once every run of the queue has finished it holds nothing
+        a run needs: each run keeps its own final checkpoint); ``population.json`` stays,
+        the last packing."""
+        self.file.unlink(missing_ok=True)
+
     def last_state(self, i: int) -> dict[str, Any] | None:
         """Run ``i``'s state in the last saved checkpoint, if any."""
         if not self.file.is_file():
@@ -150,3 +162,27 @@ def adopt_orphaned_states(
         save_checkpoint(own, state)
         adopted.append(wanted[run])
     return adopted
+
+
+def finished_homes(populations: Path) -> list[Path]:
+    """The population folders under ``populations`` that still hold a checkpoint though
+    every one of their runs has finished (``done.json`` in its folder; the runs as
+    ``population.json`` names them): their checkpoints hold nothing a run needs any more.
+    A folder without a readable ``population.json`` is not listed."""
+    if not populations.is_dir():
+        return []
+    found = []
+    for home in sorted(populations.iterdir()):
+        if not (home / CHECKPOINT).is_file():
+            continue
+        try:
+            runs = json.loads((home / POPULATION_FILE).read_text(encoding="utf-8"))["runs"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if (
+            isinstance(runs, list)
+            and runs
+            and all(isinstance(r, str) and (home / r / "done.json").is_file() for r in runs)
+        ):
+            found.append(home)
+    return found
