@@ -480,6 +480,15 @@ def test_finished_homes_lists_old_populations_whose_runs_are_all_done(tmp_path: 
     assert finished_homes(pops) == [pops / "all-done"]
     assert finished_homes(tmp_path / "missing") == []
 
+    from pporpe.runs.population_checkpoint import discard_finished
+
+    assert discard_finished(pops) == [pops / "all-done"]
+    assert not (pops / "all-done" / "checkpoint.pt").exists()
+    assert (pops / "all-done" / "population.json").exists()
+    for home in ("one-left", "garbled", "empty"):
+        assert (pops / home / "checkpoint.pt").exists(), home
+    assert discard_finished(pops) == []  # nothing left to delete
+
 
 def test_adopt_orphaned_states_hands_each_run_its_most_advanced_state(tmp_path: Path) -> None:
     """Two old populations hold run a (3 and 5 episodes) and run b (2); the planned home

@@ -30,7 +30,7 @@ from typing import Any
 from ..envs import make_env
 from ..runs.cadence import CHECKPOINT_WITHIN_S
 from ..runs.folder import CHECKPOINT, check_checkpoint
-from ..runs.population_checkpoint import adopt_orphaned_states, finished_homes
+from ..runs.population_checkpoint import adopt_orphaned_states, discard_finished
 from ..text import count
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .grid import GridSpec
@@ -140,18 +140,51 @@ def _check_checkpoints(jobs: list[Job]) -> None:
 
 def _discard_finished_populations(populations: Path, progress: bool) -> None:
     """Delete the checkpoints of the populations whose runs have all finished
-    (:func:`~pporpe.runs.population_checkpoint.finished_homes`): a population discards its
+    (:func:`~pporpe.runs.population_checkpoint.discard_finished`): a population discards its
     own when its last run finishes, so these are left by a grid packed differently before
     (its runs went on in other populations); they hold nothing a run needs."""
-    finished = finished_homes(populations)
-    for home in finished:
-        (home / CHECKPOINT).unlink(missing_ok=True)
+    finished = discard_finished(populations)
     if finished and progress:
         print(
             f"removed the checkpoints of {count(len(finished), 'population')} packed before "
             f"(under {populations}): all their runs are done",
             file=sys.stderr,
         )
+
+
+def _plan(
+    spec: GridSpec, out_dir: Path, population: int, workers: int, progress: bool
+) -> tuple[list[str], list[tuple[Path, Any]], list[Job]]:
+    """The runs already done, the runs still to train and their jobs: every task and every
+    checkpoint the jobs will read checked first, and the states of runs in flight in
+    populations no longer planned handed to the runs
+    (:func:`~pporpe.runs.population_checkpoint.adopt_orphaned_states`)."""
+    skipped, todo = _split_finished(spec, out_dir)
+    _check_tasks(spec.source, [cfg for _, cfg in todo])
+    jobs = plan_jobs(todo, out_dir, population, workers) if todo else []
+    _check_checkpoints(jobs)
+    adopted = adopt_orphaned_states(
+        out_dir / POPULATIONS, [j.home for j in jobs], [d for j in jobs for d, _ in j.runs]
+    )
+    if adopted and progress:
+        print(
+            f"{count(len(adopted), 'run')} in flight in populations packed before "
+            f"(under {out_dir / POPULATIONS}) go on from their checkpoints",
+            file=sys.stderr,
+        )
+    return skipped, todo, jobs
+
+
+def _progress_bar(
+    spec: GridSpec, skipped: list[str], todo: list[tuple[Path, Any]], progress: bool
+) -> GridProgress:
+    """The grid's progress bar over its runs still to train, with their budgets: episodes,
+    or steps for a run budgeted in steps."""
+    budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
+    step_budgets = [None if b else getattr(cfg, "total_steps", None) for b, (_, cfg) in
+                    zip(budgets, todo, strict=True)]  # fmt: skip
+    return GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets,
+                        step_budgets=step_budgets)  # fmt: skip
 
 
 def _run_jobs(
@@ -231,31 +264,15 @@ def reproduce(
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"the results folder {out} is an existing file; choose another --out")
     t0 = time.perf_counter()
-    skipped, todo = _split_finished(spec, out_dir)
-    _check_tasks(spec.source, [cfg for _, cfg in todo])
     n_workers = workers or os.cpu_count() or 1
-    jobs = plan_jobs(todo, out_dir, population, n_workers) if todo else []
-    _check_checkpoints(jobs)
-    adopted = adopt_orphaned_states(
-        out_dir / POPULATIONS, [j.home for j in jobs], [d for j in jobs for d, _ in j.runs]
-    )
-    if adopted and progress:
-        print(
-            f"{count(len(adopted), 'run')} in flight in populations packed before "
-            f"(under {out_dir / POPULATIONS}) go on from their checkpoints",
-            file=sys.stderr,
-        )
+    skipped, todo, jobs = _plan(spec, out_dir, population, n_workers, progress)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ValueError(f"cannot create the results folder {out}: {exc.strerror}") from None
     listed = spec if whole is None else whole  # a chunk lists the whole grid
     listing_changed = write_grid_summary(out_dir, listed)
-    budgets = [getattr(cfg, "episodes", None) for _, cfg in todo]
-    step_budgets = [None if b else getattr(cfg, "total_steps", None) for b, (_, cfg) in
-                    zip(budgets, todo, strict=True)]  # fmt: skip
-    bar = GridProgress(len(spec.runs), len(skipped), [d for d, _ in todo], progress, budgets,
-                       step_budgets=step_budgets)  # fmt: skip
+    bar = _progress_bar(spec, skipped, todo, progress)
     results = _run_jobs(jobs, backend, n_workers, address, bar, seconds, stop)
     _discard_finished_populations(out_dir / POPULATIONS, progress)
 

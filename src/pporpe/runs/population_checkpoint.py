@@ -16,7 +16,7 @@ checkpoint (:func:`progress_of`).
 
 A queue whose runs have all finished deletes its checkpoint (:meth:`PopulationCheckpoint.discard`;
 each run keeps its own final one) and keeps ``population.json``; a grid deletes the
-checkpoints of old homes whose runs have all finished since (:func:`finished_homes`).
+checkpoints of old homes whose runs have all finished since (:func:`discard_finished`).
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ __all__ = [
     "Packing",
     "PopulationCheckpoint",
     "adopt_orphaned_states",
+    "discard_checkpoint",
+    "discard_finished",
     "finished_homes",
     "progress_of",
 ]
@@ -110,7 +112,7 @@ class PopulationCheckpoint:
         """Delete the checkpoint (once every run of the queue has finished it holds nothing
         a run needs: each run keeps its own final checkpoint); ``population.json`` stays,
         the last packing."""
-        self.file.unlink(missing_ok=True)
+        discard_checkpoint(self.file.parent)
 
     def last_state(self, i: int) -> dict[str, Any] | None:
         """Run ``i``'s state in the last saved checkpoint, if any."""
@@ -186,3 +188,17 @@ def finished_homes(populations: Path) -> list[Path]:
         ):
             found.append(home)
     return found
+
+
+def discard_checkpoint(home: Path) -> None:
+    """Delete the population checkpoint of ``home``, if any; ``population.json`` stays."""
+    (home / CHECKPOINT).unlink(missing_ok=True)
+
+
+def discard_finished(populations: Path) -> list[Path]:
+    """Delete the checkpoints of :func:`finished_homes` (left by a grid packed differently
+    before: their runs went on in other populations); return those homes."""
+    finished = finished_homes(populations)
+    for home in finished:
+        discard_checkpoint(home)
+    return finished
