@@ -44,8 +44,9 @@ reproduce: $(VENV)/.installed
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report $(ARGS)
 
-## The same grid at the author's full lengths (HalfCheetah and Ant 2000 episodes, about 17 CPU
-## hours, docs/results/throughput.md): resumable, into results/paper-full (its checkpoints
+## The same grid at the author's full lengths (HalfCheetah and Ant 2000 episodes; CPU hours:
+## the estimate in docs/results/throughput.md, the measured cost in the Compute line of
+## results/paper-full/REPORT.md): resumable, into results/paper-full (its checkpoints
 ## ignored by git; experiments/collect.py commits runs trained in a folder elsewhere).
 reproduce-paper-full: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper-full.toml --out $(OUT)/paper-full --report $(ARGS)
