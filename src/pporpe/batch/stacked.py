@@ -21,7 +21,7 @@ from torch import Tensor
 
 from ..nn.mlp import flat_views
 from ..nn.policies import NormalHead
-from ..nn.stacked import StackedMLP, stacked_views
+from ..nn.stacked import StackedMLP, padded_rows, stacked_views
 from .model import ActorCritic
 
 __all__ = ["FixedScale", "StackedActorCritic", "StackedAdam"]
@@ -43,9 +43,10 @@ class StackedActorCritic:
         self.act_dim = template.act_dim
         self.global_scale = template.global_scale
         self.members = members
-        self.theta = torch.zeros(members, template.theta.numel())
-        """Member k's parameters in row k, laid out as a run's ``ActorCritic.theta``."""
-        self.grad = torch.zeros_like(self.theta)
+        self.theta = padded_rows(members, template.theta.numel())
+        """Member k's parameters in row k, laid out as a run's ``ActorCritic.theta``, each row
+        on a 64-byte boundary as a run's is (:func:`~pporpe.nn.stacked.padded_rows`)."""
+        self.grad = padded_rows(members, template.theta.numel())
         """Row k: member k's gradient (the ``.grad`` of every parameter view is a view of it)."""
         leaves = stacked_views(self.theta, flat.shapes)
         for leaf, grad in zip(leaves, stacked_views(self.grad, flat.shapes), strict=True):

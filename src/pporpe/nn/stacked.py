@@ -16,13 +16,29 @@ process (:func:`linear_mode`): on random inputs, the batched forms (:data:`Linea
 ``"bmm"``, ``baddbmm(b, x, W^T)`` with its own backward; ``"bmm_t"``, ``baddbmm(b, W,
 x^T)`` transposed back; ``"bmm_mm"`` and ``"bmm_t_mm"``, the same with the weight
 gradient member by member) are compared bit for bit with ``F.linear`` member by member,
-outputs and gradients; the first that agrees is used, else ``"loop"``, ``F.linear``
+outputs and gradients, on several random draws at the population's own number of members
+(one draw is not enough: on an AMD EPYC with AVX2, ``bmm`` of ``[2, 16] x [16, 1]``
+matrices matches ``F.linear`` on about one draw in ten); the first that agrees on every
+draw is used, else ``"loop"``, ``F.linear``
 member by member (exact by construction, K calls). LayerNorm is probed the same way
 (``"batched"``: the normalisation then the member's scale and shift, or ``"loop"``), and
 so are the activations: PyTorch computes the elements of a tensor that fill whole vector
 registers with vectorised kernels and the rest with scalar ones, which round some
 functions differently (SiLU, softplus, sigmoid; not tanh, ReLU, exp or log on the machine
 tested), and stacking K members moves elements from one to the other.
+
+**Alignment.** On some machines a matrix product's rounding also depends on where its
+operands lie in memory: on an AMD EPYC with AVX2 (MKL 2024.2), ``F.linear`` of the same
+numbers gives other bits when the weight or the input starts 4, 8 or 12 bytes past a 64-byte
+boundary (``[2, 16] x [16, 1]``, ``[8, 16] x [16, 6]``: :func:`alignment_sensitive` probes
+this once per process). A run alone's parameters are views of one flat vector that PyTorch
+allocates on a 64-byte boundary, and its activations are fresh tensors, allocated the same
+way. So :func:`padded_rows` lays the members' rows out on 64-byte boundaries (every
+parameter of member k then lies where it lies in a run alone), the ``"loop"`` forms compute
+each member on its input where it starts on a 64-byte boundary, else on a copy that does
+(:func:`aligned`, with the same strides: a product's rounding also depends on them), and
+on a machine where alignment matters every
+linear layer takes the ``"loop"`` form.
 """
 
 from __future__ import annotations
@@ -41,13 +57,17 @@ from torch import Tensor
 from .mlp import FlatMLP
 
 __all__ = [
+    "ALIGNMENT",
     "LayerNormMode",
     "LinearMode",
     "StackedMLP",
     "activation_mode",
+    "aligned",
+    "alignment_sensitive",
     "backward_quietly",
     "layer_norm_mode",
     "linear_mode",
+    "padded_rows",
     "stacked_layer_norm",
     "stacked_linear",
     "stacked_views",
@@ -58,9 +78,60 @@ LinearMode = Literal["bmm", "bmm_t", "bmm_mm", "bmm_t_mm", "loop"]
 LayerNormMode = Literal["batched", "loop"]
 """How :func:`stacked_layer_norm` computes K LayerNorms."""
 
+ALIGNMENT = 16
+"""Floats per 64 bytes, the alignment of PyTorch's CPU allocations."""
+
 _PROBE_MEMBERS = 3
+"""The fewest members a probe stacks (a population of fewer is probed with this many too)."""
+_PROBE_DRAWS = 6
+"""Random draws of the inputs a batched form must match ``"loop"`` on, every one."""
 _PROBE_ELEMENTS = 16384
 _LAYOUT_WARNING = "grad and param do not obey the gradient layout contract"
+
+
+def padded_rows(members: int, n: int) -> Tensor:
+    """A zero ``[members, n]`` tensor whose rows start on 64-byte boundaries (a view of a
+    ``[members, n']`` tensor, ``n'`` the multiple of :data:`ALIGNMENT` at or above ``n``), as a
+    run alone's flat parameter vector does."""
+    stride = -(-n // ALIGNMENT) * ALIGNMENT
+    return torch.zeros(members, stride)[:, :n]
+
+
+def aligned(t: Tensor) -> Tensor:
+    """``t`` where it starts on a 64-byte boundary, else a copy with the same strides that
+    does: a member's input as a run alone's would lie (a fresh tensor, or a view of one)."""
+    if t.data_ptr() % (4 * ALIGNMENT) == 0:
+        return t
+    out = torch.empty_strided(t.shape, t.stride(), dtype=t.dtype)
+    out.copy_(t)
+    return out
+
+
+def _at_offset(t: Tensor, offset: int) -> Tensor:
+    """A copy of ``t`` that starts ``offset`` floats past a 64-byte boundary."""
+    buf = torch.empty(t.numel() + offset)
+    out = buf[offset:].view(t.shape)
+    out.copy_(t)
+    return out
+
+
+@functools.cache
+def alignment_sensitive() -> bool:
+    """Whether ``F.linear`` on this machine gives other bits for the same numbers when its
+    input or weight starts off a 64-byte boundary (probed once per process, on the small
+    shapes of a batch run's layers and every float offset within 64 bytes)."""
+    gen = torch.Generator().manual_seed(0)
+    for rows, fan_in, fan_out in ((2, 16, 1), (8, 16, 6), (1, 16, 16), (64, 64, 1)):
+        x = torch.randn(rows, fan_in, generator=gen)
+        w = torch.randn(fan_out, fan_in, generator=gen)
+        b = torch.randn(fan_out, generator=gen)
+        ref = F.linear(x, w, b)
+        for offset in range(1, ALIGNMENT):
+            if not torch.equal(F.linear(_at_offset(x, offset), w, b), ref):
+                return True
+            if not torch.equal(F.linear(x, _at_offset(w, offset), b), ref):
+                return True
+    return False
 
 
 def stacked_views(flat: Tensor, shapes: Sequence[torch.Size]) -> list[Tensor]:
@@ -121,7 +192,7 @@ def stacked_linear(x: Tensor, w: Tensor, b: Tensor, mode: LinearMode) -> Tensor:
     if mode in _CUSTOM:
         out: Tensor = _Linear.apply(x, w, b, *_CUSTOM[mode])
         return out
-    return torch.stack([F.linear(x[k], w[k], b[k]) for k in range(x.shape[0])])
+    return torch.stack([F.linear(aligned(x[k]), w[k], b[k]) for k in range(x.shape[0])])
 
 
 def stacked_layer_norm(
@@ -133,7 +204,7 @@ def stacked_layer_norm(
         xhat = F.layer_norm(x, shape, None, None, eps)
         return torch.addcmul(beta.unsqueeze(1), xhat, gamma.unsqueeze(1))
     return torch.stack(
-        [F.layer_norm(x[k], shape, gamma[k], beta[k], eps) for k in range(x.shape[0])]
+        [F.layer_norm(aligned(x[k]), shape, gamma[k], beta[k], eps) for k in range(x.shape[0])]
     )
 
 
@@ -158,28 +229,54 @@ def _same_bits(
     return all(torch.equal(a, b) for a, b in zip(*results, strict=True))
 
 
-def _probe_inputs(shapes: Sequence[tuple[int, ...]], members: int = _PROBE_MEMBERS) -> list[Tensor]:
-    gen = torch.Generator().manual_seed(0)
+def _probe_inputs(
+    shapes: Sequence[tuple[int, ...]], members: int = _PROBE_MEMBERS, draw: int = 0
+) -> list[Tensor]:
+    """Draw ``draw`` of a probe's inputs: standard normal tensors ``[members, *shape]``."""
+    gen = torch.Generator().manual_seed(draw)
     return [torch.randn(members, *s, generator=gen) for s in shapes]
 
 
-def linear_mode(rows: int, fan_in: int, fan_out: int, grad: bool) -> LinearMode:
-    """:func:`_linear_mode` for torch's current number of threads."""
-    return _linear_mode(rows, fan_in, fan_out, grad, torch.get_num_threads())
+def _same_bits_on_draws(
+    batched: Callable[[list[Tensor]], Tensor],
+    alone: Callable[[list[Tensor]], Tensor],
+    draws: Sequence[list[Tensor]],
+    grad: bool,
+) -> bool:
+    """:func:`_same_bits` on every one of ``draws``."""
+    return all(_same_bits(batched, alone, inputs, grad) for inputs in draws)
 
 
-def layer_norm_mode(rows: int, units: int, eps: float, grad: bool) -> LayerNormMode:
+def linear_mode(
+    rows: int, fan_in: int, fan_out: int, grad: bool, members: int = _PROBE_MEMBERS
+) -> LinearMode:
+    """:func:`_linear_mode` for torch's current number of threads; ``"loop"`` where the
+    machine's products depend on alignment (:func:`alignment_sensitive`)."""
+    if alignment_sensitive():
+        return "loop"
+    members = max(members, _PROBE_MEMBERS)
+    return _linear_mode(rows, fan_in, fan_out, grad, members, torch.get_num_threads())
+
+
+def layer_norm_mode(
+    rows: int, units: int, eps: float, grad: bool, members: int = _PROBE_MEMBERS
+) -> LayerNormMode:
     """:func:`_layer_norm_mode` for torch's current number of threads."""
-    return _layer_norm_mode(rows, units, eps, grad, torch.get_num_threads())
+    members = max(members, _PROBE_MEMBERS)
+    return _layer_norm_mode(rows, units, eps, grad, members, torch.get_num_threads())
 
 
 @functools.cache
-def _linear_mode(rows: int, fan_in: int, fan_out: int, grad: bool, threads: int) -> LinearMode:
+def _linear_mode(
+    rows: int, fan_in: int, fan_out: int, grad: bool, members: int, threads: int
+) -> LinearMode:
     """The first batched form (:data:`LinearMode`) that computes what ``F.linear``
-    computes member by member bit for bit, for ``rows`` inputs of ``fan_in`` features to
-    ``fan_out`` (outputs and, with ``grad``, gradients), on this machine; ``"loop"`` when
-    none does. Probed once per process, shape and number of threads, on random inputs."""
-    inputs = _probe_inputs([(rows, fan_in), (fan_out, fan_in), (fan_out,)])
+    computes member by member bit for bit, for ``members`` x ``rows`` inputs of ``fan_in``
+    features to ``fan_out`` (outputs and, with ``grad``, gradients), on this machine;
+    ``"loop"`` when none does. Probed once per process, shape, member count and number of
+    threads, on :data:`_PROBE_DRAWS` random draws of the inputs."""
+    shapes = [(rows, fan_in), (fan_out, fan_in), (fan_out,)]
+    draws = [_probe_inputs(shapes, members, d) for d in range(_PROBE_DRAWS)]
 
     def linear(mode: LinearMode, t: list[Tensor]) -> Tensor:
         return stacked_linear(t[0], t[1], t[2], mode)
@@ -189,17 +286,22 @@ def _linear_mode(rows: int, fan_in: int, fan_out: int, grad: bool, threads: int)
     )
     alone = functools.partial(linear, "loop")
     for mode in modes:
-        if _same_bits(functools.partial(linear, mode), alone, inputs, grad):
+        if _same_bits_on_draws(functools.partial(linear, mode), alone, draws, grad):
             return mode
     return "loop"
 
 
 @functools.cache
-def _layer_norm_mode(rows: int, units: int, eps: float, grad: bool, threads: int) -> LayerNormMode:
+def _layer_norm_mode(
+    rows: int, units: int, eps: float, grad: bool, members: int, threads: int
+) -> LayerNormMode:
     """``"batched"`` when it computes what ``F.layer_norm`` computes member by member bit
     for bit (as :func:`linear_mode`), else ``"loop"``."""
-    inputs = _probe_inputs([(rows, units), (units,), (units,)])
-    inputs[1] = 1.0 + 0.1 * inputs[1]
+    draws = []
+    for d in range(_PROBE_DRAWS):
+        inputs = _probe_inputs([(rows, units), (units,), (units,)], members, d)
+        inputs[1] = 1.0 + 0.1 * inputs[1]
+        draws.append(inputs)
 
     def alone(t: list[Tensor]) -> Tensor:
         return stacked_layer_norm(t[0], t[1], t[2], eps, "loop")
@@ -207,7 +309,7 @@ def _layer_norm_mode(rows: int, units: int, eps: float, grad: bool, threads: int
     def batched(t: list[Tensor]) -> Tensor:
         return stacked_layer_norm(t[0], t[1], t[2], eps, "batched")
 
-    return "batched" if _same_bits(batched, alone, inputs, grad) else "loop"
+    return "batched" if _same_bits_on_draws(batched, alone, draws, grad) else "loop"
 
 
 def activation_mode(act: Callable[[Tensor], Tensor], rows: int, units: int, grad: bool) -> str:
@@ -262,14 +364,14 @@ class StackedMLP:
         for i, op in enumerate(self.ops):
             if op.kind == "linear":
                 w, b = params[op.index], params[op.index + 1]
-                mode = linear_mode(rows, w.shape[2], w.shape[1], grad)
+                mode = linear_mode(rows, w.shape[2], w.shape[1], grad, w.shape[0])
                 if mode == "loop" and not grad:
                     x = self._loop_no_grad(i, x, w.shape[1])
                 else:
                     x = stacked_linear(x, w, b, mode)
             elif op.kind == "norm":
                 g, b = params[op.index], params[op.index + 1]
-                ln_mode = layer_norm_mode(rows, g.shape[1], op.norm_eps, grad)
+                ln_mode = layer_norm_mode(rows, g.shape[1], op.norm_eps, grad, g.shape[0])
                 x = stacked_layer_norm(x, g, b, op.norm_eps, ln_mode)
             elif activation_mode(op.act, rows, x.shape[2], grad) == "batched":
                 x = op.act(x)
@@ -283,27 +385,27 @@ class StackedMLP:
         if key not in self._buffers:
             self._buffers[key] = _LoopBuffers.make(x, fan_out)
         buf = self._buffers[key]
-        buf.x.copy_(x)
         wts, bs = self._members[i]
-        for xk, wt, b, out in zip(buf.x_rows, wts, bs, buf.out_rows, strict=True):
+        for xin, xk, wt, b, out in zip(x.unbind(0), buf.x_rows, wts, bs, buf.out_rows, strict=True):
+            xk.copy_(xin)
             torch.addmm(b, xk, wt, out=out)
-        return buf.out.clone()
+        return torch.stack(buf.out_rows)
 
 
 @dataclass(frozen=True)
 class _LoopBuffers:
-    """The input and output of a member-by-member layer, with their per-member views."""
+    """The inputs and outputs of a member-by-member layer: one tensor per member, each
+    allocated on its own (64-byte aligned, as a run alone's activations)."""
 
-    x: Tensor
     x_rows: tuple[Tensor, ...]
-    out: Tensor
     out_rows: tuple[Tensor, ...]
 
     @staticmethod
     def make(like: Tensor, fan_out: int) -> _LoopBuffers:
-        x = torch.empty_like(like, memory_format=torch.contiguous_format)
-        out = like.new_empty(like.shape[0], like.shape[1], fan_out)
-        return _LoopBuffers(x, x.unbind(0), out, out.unbind(0))
+        members, rows, fan_in = like.shape
+        x = tuple(like.new_empty(rows, fan_in) for _ in range(members))
+        out = tuple(like.new_empty(rows, fan_out) for _ in range(members))
+        return _LoopBuffers(x, out)
 
 
 def backward_quietly(loss: Tensor) -> None:
