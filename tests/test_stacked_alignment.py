@@ -1,10 +1,10 @@
 """K stacked networks lie in memory as K runs alone do (:mod:`pporpe.nn.stacked`).
 
 On some CPUs (an AMD EPYC with AVX2 and MKL 2024.2) ``F.linear`` of the same numbers rounds
-differently when an operand starts off a 64-byte boundary; these tests check the layout
-that makes a population member compute what its run alone computes on such a machine, and
-that every form :func:`linear_mode` picks agrees with ``F.linear`` on fresh tensors on draws
-the probe never saw.
+differently when an operand starts off a 16-byte boundary or has other strides; these tests
+check the layout that makes a population member compute what its run alone computes on
+such a machine, and that every form :func:`linear_mode` picks for a layout agrees with
+``F.linear`` on operands laid out as a run alone's, on draws the probe never saw.
 """
 
 from __future__ import annotations
@@ -19,8 +19,14 @@ import torch.nn.functional as F
 from pporpe.batch import BatchConfig
 from pporpe.batch.model import ActorCritic
 from pporpe.batch.stacked import StackedActorCritic
-from pporpe.nn import stacked
-from pporpe.nn.stacked import ALIGNMENT, aligned, linear_mode, padded_rows, stacked_linear
+from pporpe.nn.stacked import (
+    ALIGNMENT,
+    LinearLayout,
+    aligned,
+    linear_mode,
+    padded_rows,
+    stacked_linear,
+)
 
 BYTES = 4 * ALIGNMENT
 
@@ -69,10 +75,41 @@ def test_members_parameters_lie_where_a_run_alones_lie() -> None:
         ]
 
 
-def test_linear_mode_is_the_loop_where_alignment_matters(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(stacked, "alignment_sensitive", lambda: True)
-    assert linear_mode(64, 64, 64, True, 4) == "loop"
-    assert linear_mode(1, 11, 6, False, 2) == "loop"
+def test_linear_layout_of_a_members_layer() -> None:
+    """The layout of a layer whose input is a strided view (observations in the first 5 of
+    10 columns) and whose weight and bias lie in padded rows."""
+    flat = padded_rows(3, 40)  # rows of 48 floats
+    w = flat[:, 2:32].view(3, 6, 5)
+    b = flat[:, 32:38]
+    x = torch.zeros(3, 7, 10)[:, :, :5]
+    assert LinearLayout.of(x, w, b) == LinearLayout((70, 10, 1), 0, 48, 2, 32)
+    assert LinearLayout.of(x, w, b) != LinearLayout.packed(3, 7, 5, 6)
+    with pytest.raises(ValueError, match="views of the rows of one"):
+        LinearLayout.of(x, w, torch.zeros(3, 6))
+
+
+def test_a_strided_input_is_probed_in_its_layout() -> None:
+    """A minibatch's observations are a strided view (stride 10 for 5 features): the form
+    chosen for that layout gives, for every member, what F.linear gives on a run alone's
+    strided input of its own, on draws the probe did not see."""
+    members, rows, fan_in, fan_out = 3, 32, 5, 8
+    for draw in range(200, 204):
+        gen = torch.Generator().manual_seed(draw)
+        x = torch.randn(members, rows, 10, generator=gen)[:, :, :fan_in]
+        flat = padded_rows(members, fan_out * fan_in + fan_out)
+        flat.copy_(torch.randn(members, fan_out * fan_in + fan_out, generator=gen))
+        w = flat[:, : fan_out * fan_in].view(members, fan_out, fan_in)
+        b = flat[:, fan_out * fan_in :]
+        mode = linear_mode(rows, fan_in, fan_out, False, members, LinearLayout.of(x, w, b))
+        out = stacked_linear(x, w, b, mode)
+        for k in range(members):
+            xk = torch.empty_strided((rows, fan_in), (10, 1))  # a run alone's view
+            xk.copy_(x[k])
+            run = flat[k].clone()
+            ref = F.linear(
+                xk, run[: fan_out * fan_in].view(fan_out, fan_in), run[fan_out * fan_in :]
+            )
+            assert torch.equal(out[k], ref), (mode, draw, k)
 
 
 @pytest.mark.parametrize(

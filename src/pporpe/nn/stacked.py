@@ -29,16 +29,16 @@ tested), and stacking K members moves elements from one to the other.
 
 **Alignment.** On some machines a matrix product's rounding also depends on where its
 operands lie in memory: on an AMD EPYC with AVX2 (MKL 2024.2), ``F.linear`` of the same
-numbers gives other bits when the weight or the input starts 4, 8 or 12 bytes past a 64-byte
-boundary (``[2, 16] x [16, 1]``, ``[8, 16] x [16, 6]``: :func:`alignment_sensitive` probes
-this once per process). A run alone's parameters are views of one flat vector that PyTorch
-allocates on a 64-byte boundary, and its activations are fresh tensors, allocated the same
-way. So :func:`padded_rows` lays the members' rows out on 64-byte boundaries (every
-parameter of member k then lies where it lies in a run alone), the ``"loop"`` forms compute
-each member on its input where it starts on a 64-byte boundary, else on a copy that does
-(:func:`aligned`, with the same strides: a product's rounding also depends on them), and
-on a machine where alignment matters every
-linear layer takes the ``"loop"`` form.
+numbers gives other bits when the weight or the input starts 4, 8 or 12 bytes past a
+16-byte boundary, or has other strides (``[2, 16] x [16, 1]``, ``[8, 16] x [16, 6]``). A
+run alone's parameters are views of one flat vector that PyTorch allocates on a 64-byte
+boundary, and its activations are fresh tensors, allocated the same way. So
+:func:`padded_rows` lays the members' rows out on 64-byte boundaries (every parameter of
+member k then lies where it lies in a run alone), the ``"loop"`` forms compute each member
+on its input where it starts on a 64-byte boundary, else on a copy with the same strides
+that does (:func:`aligned`), and each linear layer is probed in its own layout
+(:class:`LinearLayout`: the input's strides and offset, the weight's place in its row)
+against ``F.linear`` on each member's tensors laid out as a run alone's.
 """
 
 from __future__ import annotations
@@ -59,11 +59,11 @@ from .mlp import FlatMLP
 __all__ = [
     "ALIGNMENT",
     "LayerNormMode",
+    "LinearLayout",
     "LinearMode",
     "StackedMLP",
     "activation_mode",
     "aligned",
-    "alignment_sensitive",
     "backward_quietly",
     "layer_norm_mode",
     "linear_mode",
@@ -82,7 +82,7 @@ ALIGNMENT = 16
 """Floats per 64 bytes, the alignment of PyTorch's CPU allocations."""
 
 _PROBE_MEMBERS = 3
-"""The fewest members a probe stacks (a population of fewer is probed with this many too)."""
+"""Members a probe stacks when it is not told the population's count."""
 _PROBE_DRAWS = 6
 """Random draws of the inputs a batched form must match ``"loop"`` on, every one."""
 _PROBE_ELEMENTS = 16384
@@ -107,31 +107,39 @@ def aligned(t: Tensor) -> Tensor:
     return out
 
 
-def _at_offset(t: Tensor, offset: int) -> Tensor:
-    """A copy of ``t`` that starts ``offset`` floats past a 64-byte boundary."""
-    buf = torch.empty(t.numel() + offset)
-    out = buf[offset:].view(t.shape)
-    out.copy_(t)
-    return out
+@dataclass(frozen=True)
+class LinearLayout:
+    """Where a stacked linear layer's operands lie: its input ``x [K, rows, in]`` (strides
+    and offset past a 64-byte boundary, in floats) and its weight ``w [K, out, in]`` and bias
+    ``b [K, out]``, rows of one ``[K, row]`` tensor (a member's row length and their
+    offsets in it). The probe of :func:`linear_mode` lays its inputs out so."""
 
+    x_strides: tuple[int, int, int]
+    x_offset: int
+    row: int
+    w_offset: int
+    b_offset: int
 
-@functools.cache
-def alignment_sensitive() -> bool:
-    """Whether ``F.linear`` on this machine gives other bits for the same numbers when its
-    input or weight starts off a 64-byte boundary (probed once per process, on the small
-    shapes of a batch run's layers and every float offset within 64 bytes)."""
-    gen = torch.Generator().manual_seed(0)
-    for rows, fan_in, fan_out in ((2, 16, 1), (8, 16, 6), (1, 16, 16), (64, 64, 1)):
-        x = torch.randn(rows, fan_in, generator=gen)
-        w = torch.randn(fan_out, fan_in, generator=gen)
-        b = torch.randn(fan_out, generator=gen)
-        ref = F.linear(x, w, b)
-        for offset in range(1, ALIGNMENT):
-            if not torch.equal(F.linear(_at_offset(x, offset), w, b), ref):
-                return True
-            if not torch.equal(F.linear(x, _at_offset(w, offset), b), ref):
-                return True
-    return False
+    @staticmethod
+    def of(x: Tensor, w: Tensor, b: Tensor) -> LinearLayout:
+        """The layout of a layer's operands; ``w`` and ``b`` views of the rows of one tensor."""
+        w_at, b_at = int(w.storage_offset()), int(b.storage_offset())
+        if w.shape[0] == 1:  # one row: a size-1 dimension's stride says nothing of its length
+            row = -(-max(w_at + w[0].numel(), b_at + b[0].numel()) // ALIGNMENT) * ALIGNMENT
+        else:
+            row = int(w.stride(0))
+        same = b.untyped_storage().data_ptr() == w.untyped_storage().data_ptr()
+        if not same or (w.shape[0] > 1 and b.stride(0) != row):
+            raise ValueError("w and b must be views of the rows of one [K, row] tensor")
+        x_strides = (x.stride(0), x.stride(1), x.stride(2))
+        x_offset = (x.data_ptr() % (4 * ALIGNMENT)) // 4
+        return LinearLayout(x_strides, x_offset, row, w_at % row, b_at % row)
+
+    @staticmethod
+    def packed(members: int, rows: int, fan_in: int, fan_out: int) -> LinearLayout:
+        """Contiguous inputs, and weight then bias in rows padded to 64 bytes."""
+        row = -(-(fan_out * fan_in + fan_out) // ALIGNMENT) * ALIGNMENT
+        return LinearLayout((rows * fan_in, fan_in, 1), 0, row, 0, fan_out * fan_in)
 
 
 def stacked_views(flat: Tensor, shapes: Sequence[torch.Size]) -> list[Tensor]:
@@ -248,45 +256,93 @@ def _same_bits_on_draws(
 
 
 def linear_mode(
-    rows: int, fan_in: int, fan_out: int, grad: bool, members: int = _PROBE_MEMBERS
+    rows: int,
+    fan_in: int,
+    fan_out: int,
+    grad: bool,
+    members: int = _PROBE_MEMBERS,
+    layout: LinearLayout | None = None,
 ) -> LinearMode:
-    """:func:`_linear_mode` for torch's current number of threads; ``"loop"`` where the
-    machine's products depend on alignment (:func:`alignment_sensitive`)."""
-    if alignment_sensitive():
-        return "loop"
-    members = max(members, _PROBE_MEMBERS)
-    return _linear_mode(rows, fan_in, fan_out, grad, members, torch.get_num_threads())
+    """:func:`_linear_mode` for torch's current number of threads; ``layout``: where the
+    operands lie (default :meth:`LinearLayout.packed`)."""
+    if layout is None:
+        layout = LinearLayout.packed(members, rows, fan_in, fan_out)
+    return _linear_mode(rows, fan_in, fan_out, grad, members, layout, torch.get_num_threads())
 
 
 def layer_norm_mode(
     rows: int, units: int, eps: float, grad: bool, members: int = _PROBE_MEMBERS
 ) -> LayerNormMode:
     """:func:`_layer_norm_mode` for torch's current number of threads."""
-    members = max(members, _PROBE_MEMBERS)
     return _layer_norm_mode(rows, units, eps, grad, members, torch.get_num_threads())
+
+
+@dataclass(frozen=True)
+class _LinearProbe:
+    """A linear layer's probe in its layout: the leaves are the input's buffer and the
+    ``[K, row]`` parameter rows; a form sees views of them as the population's layer does,
+    the reference (:meth:`alone`) each member's operands copied where a run alone's lie."""
+
+    members: int
+    shape: tuple[int, int, int]  # rows, fan_in, fan_out
+    layout: LinearLayout
+
+    def leaves(self, draw: int) -> list[Tensor]:
+        lay, (rows, fan_in, _) = self.layout, self.shape
+        s0, s1, s2 = lay.x_strides
+        extent = (self.members - 1) * s0 + (rows - 1) * s1 + (fan_in - 1) * s2 + 1
+        gen = torch.Generator().manual_seed(draw)
+        x_buf = torch.randn(lay.x_offset + extent, generator=gen)
+        return [x_buf, torch.randn(self.members, lay.row, generator=gen)]
+
+    def operands(self, leaves: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        lay, (rows, fan_in, fan_out) = self.layout, self.shape
+        x = leaves[0].as_strided((self.members, rows, fan_in), lay.x_strides, lay.x_offset)
+        flat = leaves[1]
+        w = flat.as_strided((self.members, fan_out, fan_in), (lay.row, fan_in, 1), lay.w_offset)
+        b = flat.as_strided((self.members, fan_out), (lay.row, 1), lay.b_offset)
+        return x, w, b
+
+    def form(self, mode: LinearMode, leaves: list[Tensor]) -> Tensor:
+        return stacked_linear(*self.operands(leaves), mode)
+
+    def alone(self, leaves: list[Tensor]) -> Tensor:
+        lay, (_, fan_in, fan_out) = self.layout, self.shape
+        x, _, _ = self.operands(leaves)
+        out = []
+        for k in range(self.members):
+            xk = torch.empty_strided(x.shape[1:], x.stride()[1:])
+            xk.copy_(x[k])
+            own = torch.empty(lay.row)  # a run alone's flat vector
+            own.copy_(leaves[1][k])
+            wk = own.as_strided((fan_out, fan_in), (fan_in, 1), lay.w_offset)
+            out.append(F.linear(xk, wk, own.as_strided((fan_out,), (1,), lay.b_offset)))
+        return torch.stack(out)
 
 
 @functools.cache
 def _linear_mode(
-    rows: int, fan_in: int, fan_out: int, grad: bool, members: int, threads: int
+    rows: int,
+    fan_in: int,
+    fan_out: int,
+    grad: bool,
+    members: int,
+    layout: LinearLayout,
+    threads: int,
 ) -> LinearMode:
-    """The first batched form (:data:`LinearMode`) that computes what ``F.linear``
-    computes member by member bit for bit, for ``members`` x ``rows`` inputs of ``fan_in``
-    features to ``fan_out`` (outputs and, with ``grad``, gradients), on this machine;
-    ``"loop"`` when none does. Probed once per process, shape, member count and number of
-    threads, on :data:`_PROBE_DRAWS` random draws of the inputs."""
-    shapes = [(rows, fan_in), (fan_out, fan_in), (fan_out,)]
-    draws = [_probe_inputs(shapes, members, d) for d in range(_PROBE_DRAWS)]
-
-    def linear(mode: LinearMode, t: list[Tensor]) -> Tensor:
-        return stacked_linear(t[0], t[1], t[2], mode)
-
+    """The first form (:data:`LinearMode`, ``"loop"`` last) that computes what ``F.linear``
+    computes for each member laid out as a run alone, bit for bit, for ``members`` x
+    ``rows`` inputs of ``fan_in`` features to ``fan_out`` in ``layout`` (outputs and, with
+    ``grad``, gradients), on this machine; ``"loop"`` when none does. Probed once per
+    process, shape, member count, layout and number of threads, on :data:`_PROBE_DRAWS`
+    random draws."""
+    probe = _LinearProbe(members, (rows, fan_in, fan_out), layout)
+    draws = [probe.leaves(d) for d in range(_PROBE_DRAWS)]
     modes: tuple[LinearMode, ...] = (
         ("bmm", "bmm_t", "bmm_mm", "bmm_t_mm") if grad else ("bmm", "bmm_t")
     )
-    alone = functools.partial(linear, "loop")
     for mode in modes:
-        if _same_bits_on_draws(functools.partial(linear, mode), alone, draws, grad):
+        if _same_bits_on_draws(functools.partial(probe.form, mode), probe.alone, draws, grad):
             return mode
     return "loop"
 
@@ -364,7 +420,8 @@ class StackedMLP:
         for i, op in enumerate(self.ops):
             if op.kind == "linear":
                 w, b = params[op.index], params[op.index + 1]
-                mode = linear_mode(rows, w.shape[2], w.shape[1], grad, w.shape[0])
+                layout = LinearLayout.of(x, w, b)
+                mode = linear_mode(rows, w.shape[2], w.shape[1], grad, w.shape[0], layout)
                 if mode == "loop" and not grad:
                     x = self._loop_no_grad(i, x, w.shape[1])
                 else:
