@@ -40,7 +40,8 @@ reproduce: $(VENV)/.installed
 
 ## The paper's grid (3 methods x 4 tasks x 10 seeds) into results/paper, whose finished runs
 ## are committed: it resumes, training only what is missing, then rewrites REPORT.md.
-## One chunk at a time: make reproduce-paper ARGS="--tasks halfcheetah" (README: times per task).
+## One chunk at a time: make reproduce-paper ARGS="--tasks halfcheetah" (results/paper/REPORT.md:
+## times per task).
 reproduce-paper: $(VENV)/.installed
 	$(VENV)/bin/pporpe reproduce experiments/paper.toml --out $(OUT)/paper --report $(ARGS)
 
