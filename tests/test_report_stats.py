@@ -164,7 +164,7 @@ def test_report_tables_and_verdicts_match_hand_computation(tmp_path: Path) -> No
     # Mean difference of the regularisation: 0.35 - mean(0, 0, 0.1, 0.1) = 0.3.
     reg_row = next(line for line in report.splitlines() if line.startswith("| regularisation"))
     assert reg_row.startswith("| regularisation | pendulum | PPO | 1.00 [1.00, 1.00] | 0.3000 [")
-    assert reg_row.endswith("| too few seeds (n = 4; a verdict needs 5) |")
+    assert reg_row.endswith("| too few seeds (n = 4; a verdict needs 5) | - |")
     assert "| final performance | pendulum | PPO | 0.62 [" in report
     assert "supported" not in report.split("The paper's claims")[1].split("Verdicts, from")[0]
     ran = "- pendulum: 60 training episodes per run, 8/8 runs finished; episodes run per"

@@ -23,7 +23,11 @@ from pporpe.experiments.tables import quarter_markdown
 from pporpe.experiments.verdicts import (
     EQUIVALENCE_BOUNDS,
     MIN_SEEDS,
+    SETTLE_CAP,
     claims_markdown,
+    seeds_to_settle,
+    settle_text,
+    short_verdict,
     verdict,
 )
 from pporpe.runs.kinds import SurrogateDiagnostics
@@ -60,6 +64,71 @@ def test_a_ci_that_touches_a_bound_is_not_past_it() -> None:
     assert verdict(0.50, 0.90, TEN).startswith("cannot tell")
     assert verdict(0.10, 0.50, TEN).startswith("cannot tell")
     assert verdict(0.5 + 1e-6, 0.90, TEN).startswith("supported")
+
+
+# --- seeds_to_settle(): the projection beside "cannot tell" ----------------------------
+
+
+def test_seeds_to_settle_by_hand() -> None:
+    # P 0.61 [0.34, 0.84] at 10 seeds: the lower arm 0.27 must shrink below 0.61 - 0.5 = 0.11,
+    # 10 * (0.27 / 0.11)**2 = 60.25 seeds, so 61; equivalence needs the upper arm 0.23 below
+    # 0.64 - 0.61 = 0.03, 10 * (0.23 / 0.03)**2 = 587.8 seeds: clearing 0.5 comes first.
+    assert seeds_to_settle(0.61, 0.34, 0.84, 10) == (61, "supported")
+    # P 0.53 [0.25, 0.79]: above 0.5 needs 10 * (0.28 / 0.03)**2 = 871.1; equivalence needs
+    # max(10 * (0.28 / 0.17)**2, 10 * (0.26 / 0.11)**2) = max(27.1, 55.9): 56 seeds.
+    assert seeds_to_settle(0.53, 0.25, 0.79, 10) == (56, "equivalent")
+    # Exactly 0.5: only equivalence can come, 10 * (0.2 / 0.14)**2 = 20.4 -> 21.
+    assert seeds_to_settle(0.5, 0.3, 0.7, 10) == (21, "equivalent")
+    # Outside the bounds: no equivalence; below 0.5, contradicted. 10 * (0.2 / 0.2)**2 = 10,
+    # and a CI that only touches 0.5 is not past it: 11.
+    assert seeds_to_settle(0.3, 0.1, 0.5, 10) == (11, "contradicted")
+    assert settle_text(0.61, 0.34, 0.84, 10) == "about 61 (supported)"
+    # P 0.505 [0.05, 0.95] at 100 seeds: equivalence needs 100 * (0.445 / 0.135)**2 = 1086.6.
+    assert settle_text(0.505, 0.05, 0.95, 100) == f"over {SETTLE_CAP} (equivalent)"
+
+
+def test_nothing_to_settle_where_a_verdict_is_given() -> None:
+    assert seeds_to_settle(0.7, 0.55, 0.90, 10) is None  # supported
+    assert seeds_to_settle(0.2, 0.10, 0.45, 10) is None  # contradicted
+    assert seeds_to_settle(0.5, 0.40, 0.60, 10) is None  # equivalent
+    assert seeds_to_settle(0.6, 0.30, 0.90, 4) is None  # too few seeds for any verdict
+    assert seeds_to_settle(math.nan, math.nan, math.nan, 10) is None
+    assert settle_text(0.7, 0.55, 0.90, 10) == "-"
+
+
+def _scaled_verdict(value: float, low: float, high: float, n: int, m: int) -> str:
+    """The verdict of the CI at ``m`` seeds with its arms scaled by sqrt(n / m)."""
+    s = math.sqrt(n / m)
+    return short_verdict(verdict(value - s * (value - low), value + s * (high - value), (m, m)))
+
+
+def test_seeds_to_settle_against_a_search_over_seeds() -> None:
+    # An independent reference: scale the CI's arms seed count by seed count and ask verdict()
+    # itself; the projection is the first count with a verdict, and that verdict.
+    rng = np.random.default_rng(3)
+    checked = 0
+    while checked < 200:
+        value = rng.uniform(0.2, 0.8)
+        low, high = value - rng.uniform(0.05, 0.4), value + rng.uniform(0.05, 0.4)
+        n = int(rng.integers(5, 40))
+        got = seeds_to_settle(value, low, high, n)
+        if not short_verdict(verdict(low, high, (n, n))).startswith("cannot tell"):
+            assert got is None
+            continue
+        m = n + 1
+        while _scaled_verdict(value, low, high, n, m).startswith("cannot tell"):
+            m += 1
+        assert got == (m, _scaled_verdict(value, low, high, n, m))
+        checked += 1
+
+
+def test_seeds_to_settle_is_symmetric_about_one_half() -> None:
+    # Swapping the two methods maps P to 1 - P and [low, high] to [1 - high, 1 - low]:
+    # the same seeds, supported and contradicted exchanged.
+    swap = {"supported": "contradicted", "contradicted": "supported", "equivalent": "equivalent"}
+    for value, low, high in ((0.61, 0.34, 0.84), (0.53, 0.25, 0.79), (0.7, 0.45, 0.9)):
+        seeds, said = seeds_to_settle(value, low, high, 10) or (0, "")
+        assert seeds_to_settle(1 - value, 1 - high, 1 - low, 10) == (seeds, swap[said])
 
 
 def test_no_verdict_from_too_few_seeds_and_seeds_left_out_are_said() -> None:
@@ -184,7 +253,7 @@ def test_partial_grid_one_seed_per_method_has_no_verdict(tmp_path: Path) -> None
     assert len(rows) == 2
     for row in rows:
         assert "| 1.00 (1 seed, no CI) |" in row  # P itself is still shown, without a CI
-        assert row.endswith("| too few seeds (n = 1; a verdict needs 5) |")
+        assert row.endswith("| too few seeds (n = 1; a verdict needs 5) | - |")
         assert "supported" not in row
     # The mean difference beside P: 30 - 10 and 30 - 20.
     assert "| 20.0 (1 seed, no CI) |" in rows[0] and "| 10.0 (1 seed, no CI) |" in rows[1]
@@ -200,8 +269,9 @@ def test_a_partial_grid_compares_the_seeds_both_methods_finished(tmp_path: Path)
     assert imp["score_n"] == (5, 5) and imp["score_left_out"] == 2  # rpe's 5, ppo's 7
     # On seeds 0-4: P = 1, mean difference mean(100..104) - mean(0..4) = 100.
     assert "| 1.00 [1.00, 1.00] | 100.0 [" in row
-    assert row.endswith(
-        "| supported (PPO-RPE ahead), on the 5 seeds both finished (2 other runs left out) |"
+    assert row.endswith(  # and no seeds to settle a verdict given
+        "| supported (PPO-RPE ahead), on the 5 seeds both finished (2 other runs left out) "
+        "| - |"
     )
     # The same seeds: the verdict alone, nothing left out.
     del ppo[7]
@@ -212,7 +282,7 @@ def test_a_partial_grid_compares_the_seeds_both_methods_finished(tmp_path: Path)
     (row,) = claim_rows(other)
     # Mean difference by hand: mean(100..105) - mean(0..5) = 100.
     assert "| 1.00 [1.00, 1.00] | 100.0 [" in row
-    assert row.endswith("| supported (PPO-RPE ahead) |")
+    assert row.endswith("| supported (PPO-RPE ahead) | - |")
 
 
 # --- where the surrogates act --------------------------------------------------------------
@@ -274,3 +344,4 @@ def test_report_has_the_new_tables(tmp_path: Path) -> None:
     # Regularisation 0.1 * score: mean(1.0 .. 1.4) - mean(0 .. 0.4) = 1.
     assert "| regularisation | pendulum | PPO | 1.00 [1.00, 1.00] | 1.0000 [" in report
     assert "strictly inside 0.36-0.64" in report
+    assert "| verdict | seeds to settle it |" in report and "**Seeds to settle it**" in report

@@ -13,7 +13,7 @@ from .figures import METHOD_LABELS
 from .results import QUARTERS, Cell, compute_line, tasks_of
 from .stats import N_RESAMPLES, Estimate
 from .tables import quarter_markdown, report_head
-from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS, short_verdict
+from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS, SETTLE_LEGEND, settle_text, short_verdict
 
 __all__ = [
     "BATCH_QUARTER_LEGEND",
@@ -47,6 +47,11 @@ def _est(est: Estimate | None, digits: int = 1) -> str:
     return f"{est.value:.{digits}f} [{est.low:.{digits}f}, {est.high:.{digits}f}]"
 
 
+def _settle(est: Estimate | None, n: tuple[int, int]) -> str:
+    """:func:`.verdicts.settle_text` of a CI of P at the fewer of ``n`` seeds."""
+    return "-" if est is None else settle_text(est.value, est.low, est.high, min(n))
+
+
 def _label(method: str) -> str:
     return METHOD_LABELS.get(method, method)
 
@@ -63,7 +68,7 @@ def _verdict_legend() -> str:
         f"{lo}-{hi} (Vargha and Delaney's bounds of a medium effect), otherwise **cannot "
         "tell**. A CI that touches 0.5 or a bound is not past it. Two methods are compared on "
         "the seeds both finished (the verdict says how many other runs were left out); no "
-        f"verdict where they share fewer than {MIN_SEEDS}.\n"
+        f"verdict where they share fewer than {MIN_SEEDS}. {SETTLE_LEGEND}\n"
     )
 
 
@@ -106,10 +111,11 @@ def aggregate_markdown(agg: Aggregate) -> list[str]:
         lines.append(f"| {_metric(a.metric).name} | {_label(a.method)} | {a.tasks} | {a.runs} "
                      f"| {_est(a.iqm, 3)} |")  # fmt: skip
     lines += ["", "| claim | rival | tasks | P(PPO-RPE > rival), mean over tasks [95% CI] "
-              "| verdict |", "| --- | --- | ---: | :---: | --- |"]  # fmt: skip
+              "| verdict | seeds to settle it |",
+              "| --- | --- | ---: | :---: | --- | --- |"]  # fmt: skip
     for p in agg.improvements:
         lines.append(f"| {_metric(p.metric).name} | {_label(p.rival)} | {p.tasks} | "
-                     f"{_est(p.p, 2)} | {p.verdict} |")  # fmt: skip
+                     f"{_est(p.p, 2)} | {p.verdict} | {_settle(p.p, p.n)} |")  # fmt: skip
     lines.append(
         "\nAs rliable computes it (Agarwal et al. 2021). Each number is normalised per task "
         "by min-max over all the task's finished runs (every method and seed): (x - worst) / "
@@ -151,11 +157,12 @@ def comparison_markdown(rows: tuple[Comparison, ...]) -> list[str]:
     """Per metric, task and rival: P(PPO-RPE > rival), the difference of the means and the
     verdict."""
     lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] "
-             "| mean difference, PPO-RPE - rival [95% CI] | verdict |",
-             "| --- | --- | --- | :---: | :---: | --- |"]  # fmt: skip
+             "| mean difference, PPO-RPE - rival [95% CI] | verdict | seeds to settle it |",
+             "| --- | --- | --- | :---: | :---: | --- | --- |"]  # fmt: skip
     for c in rows:
         lines.append(f"| {_metric(c.metric).name} | {c.task} | {_label(c.rival)} | "
-                     f"{_est(c.p, 2)} | {_est(c.diff)} | {c.verdict} |")  # fmt: skip
+                     f"{_est(c.p, 2)} | {_est(c.diff)} | {c.verdict} | "
+                     f"{_settle(c.p, c.n)} |")  # fmt: skip
     lines.append(
         "\nProbability of improvement: P(X > Y) + P(X = Y)/2 for a random seed of PPO-RPE "
         "against a random seed of the rival (0.5: neither ahead); its CI and that of the "

@@ -17,6 +17,9 @@ The edges: a CI that touches a bound (an end equal to 0.5, 0.36 or 0.64, within
 medium effect, so a CI that reaches 0.64 does not rule out a medium effect, and is not
 ``equivalent``. A CI above 0.5 and inside the bounds is ``supported``, by less than a
 medium effect.
+
+Beside a ``cannot tell`` verdict, :func:`seeds_to_settle` projects roughly how many seeds per
+method would give one, were the estimate of P to stay where it is.
 """
 
 from __future__ import annotations
@@ -33,7 +36,10 @@ __all__ = [
     "EDGE_TOLERANCE",
     "EQUIVALENCE_BOUNDS",
     "MIN_SEEDS",
+    "SETTLE_CAP",
     "claims_markdown",
+    "seeds_to_settle",
+    "settle_text",
     "short_verdict",
     "verdict",
 ]
@@ -98,6 +104,65 @@ def verdict(low: float, high: float, n: tuple[int, int], left_out: int = 0) -> s
     return said
 
 
+SETTLE_CAP = 1000
+"""The most seeds per method :func:`settle_text` names; a projection above it reads "over
+1000"."""
+
+
+def _arms_needed(n: int, arm: float, room: float) -> int:
+    """The fewest seeds at which a CI arm of length ``arm`` at ``n`` seeds, shrinking as
+    1/sqrt(seeds), is shorter than ``room``: ``n * (arm / room)**2``, rounded up past it."""
+    return n + 1 if arm <= 0 else max(n + 1, math.floor(n * (arm / room) ** 2) + 1)
+
+
+def seeds_to_settle(value: float, low: float, high: float, n: int) -> tuple[int, str] | None:
+    """A rough projection for a ``cannot tell`` CI ``[low, high]`` of P(PPO-RPE > rival) =
+    ``value`` at ``n`` seeds per method: the fewest seeds per method at which it would give a
+    verdict, and which (``supported``, ``contradicted`` or ``equivalent``), if ``value``
+    stayed and each arm of the CI (``value - low``, ``high - value``) shrank as 1/sqrt(n), as a
+    bootstrap CI's arms do once n is large.
+
+    To clear 0.5 the arm towards it must become shorter than ``abs(value - 0.5)``: ``n * (arm
+    / abs(value - 0.5))**2`` seeds; to be equivalent both arms must fit inside
+    :data:`EQUIVALENCE_BOUNDS`. The smaller wins. None where :func:`verdict` already gives a
+    verdict (or no data, or too few seeds). P itself moves as seeds are added, so this is a
+    planning figure, not a prediction."""
+    if not all(map(math.isfinite, (value, low, high))):
+        return None
+    if not short_verdict(verdict(low, high, (n, n))).startswith("cannot tell"):
+        return None
+    lo_bound, hi_bound = EQUIVALENCE_BOUNDS
+    options = []
+    if value > 0.5:
+        options.append((_arms_needed(n, value - low, value - 0.5), "supported"))
+    elif value < 0.5:
+        options.append((_arms_needed(n, high - value, 0.5 - value), "contradicted"))
+    if lo_bound < value < hi_bound:
+        both = max(_arms_needed(n, value - low, value - lo_bound),
+                   _arms_needed(n, high - value, hi_bound - value))  # fmt: skip
+        options.append((both, "equivalent"))
+    return min(options)
+
+
+def settle_text(value: float, low: float, high: float, n: int) -> str:
+    """:func:`seeds_to_settle` for a table: ``about 61 (supported)``, ``over 1000
+    (equivalent)``, or ``-`` where there is nothing to project."""
+    got = seeds_to_settle(value, low, high, n)
+    if got is None:
+        return "-"
+    seeds, said = got
+    return f"over {SETTLE_CAP} ({said})" if seeds > SETTLE_CAP else f"about {seeds} ({said})"
+
+
+SETTLE_LEGEND = (
+    "**Seeds to settle it**: for a claim that cannot be told, a rough projection of the seeds "
+    "per method at which the CI would give a verdict, and which one, if P stayed at its "
+    "estimate and each arm of its CI shrank as 1/sqrt(seeds), as a bootstrap CI's do for many "
+    "seeds. P moves as seeds are added, so it is a planning figure, not a prediction."
+)
+"""The sentence under a table with a seeds-to-settle column."""
+
+
 def short_verdict(said: str) -> str:
     """A :func:`verdict` without what follows its word in brackets (the reason, and the
     seeds left out after it): ``cannot tell at 10 seeds``."""
@@ -106,21 +171,24 @@ def short_verdict(said: str) -> str:
 
 def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
     """One line per claim, task and rival: the probability of improvement, the difference of
-    the means and the verdict."""
+    the means, the verdict and, where it cannot tell, the seeds that would settle it
+    (:func:`settle_text`)."""
     rows = improvement_rows(cells) if stats is None else stats.improvements
     lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] "
-             "| mean difference, PPO-RPE - rival [95% CI] | verdict |",
-             "| --- | --- | --- | :---: | :---: | --- |"]  # fmt: skip
+             "| mean difference, PPO-RPE - rival [95% CI] | verdict | seeds to settle it |",
+             "| --- | --- | --- | :---: | :---: | --- | --- |"]  # fmt: skip
     for stat, claim, tasks in CLAIMS:
         for r in rows:
             if tasks is not None and r["task"] not in tasks:
                 continue
             said = verdict(r[f"{stat}_low"], r[f"{stat}_high"], r[f"{stat}_n"],
                            r[f"{stat}_left_out"])  # fmt: skip
+            settle = settle_text(r[f"{stat}_value"], r[f"{stat}_low"], r[f"{stat}_high"],
+                                 min(r[f"{stat}_n"]))  # fmt: skip
             lines.append(
                 f"| {claim.split(':')[0]} | {r['task']} | "
                 f"{METHOD_LABELS.get(r['rival'], r['rival'])} | {fmt_ci(r, stat, 2)} | "
-                f"{fmt_ci(r, f'{stat}_diff', DIFF_DIGITS[stat])} | {said} |"
+                f"{fmt_ci(r, f'{stat}_diff', DIFF_DIGITS[stat])} | {said} | {settle} |"
             )
     return "\n".join(lines) + "\n\n" + _legend() + "\n"
 
@@ -143,5 +211,6 @@ def _legend() -> str:
         f"{MIN_SEEDS} seeds. The two methods are compared on the seeds both finished (a grid "
         "still running, a failed run: the verdict says how many were left out). Mean "
         "difference: of the claim's statistic (score, first-50 return, regularisation "
-        "amount), with a bootstrap CI resampling both methods' seeds.\n"
+        "amount), with a bootstrap CI resampling both methods' seeds. "
+        + SETTLE_LEGEND + "\n"
     )
