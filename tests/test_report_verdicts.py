@@ -82,6 +82,10 @@ def test_seeds_to_settle_by_hand() -> None:
     # Outside the bounds: no equivalence; below 0.5, contradicted. 10 * (0.2 / 0.2)**2 = 10,
     # and a CI that only touches 0.5 is not past it: 11.
     assert seeds_to_settle(0.3, 0.1, 0.5, 10) == (11, "contradicted")
+    # A tie: 10 * (0.2 / 0.07)**2 = 81.6 seeds both clear 0.5 and fit the upper arm inside
+    # 0.64; verdict() then reads "supported (..., by less than a medium effect)".
+    assert seeds_to_settle(0.57, 0.37, 0.77, 10) == (82, "supported")
+    assert seeds_to_settle(0.43, 0.23, 0.63, 10) == (82, "contradicted")
     assert settle_text(0.61, 0.34, 0.84, 10) == "about 61 (supported)"
     # P 0.505 [0.05, 0.95] at 100 seeds: equivalence needs 100 * (0.445 / 0.135)**2 = 1086.6.
     assert settle_text(0.505, 0.05, 0.95, 100) == f"over {SETTLE_CAP} (equivalent)"
@@ -107,7 +111,7 @@ def test_seeds_to_settle_against_a_search_over_seeds() -> None:
     # itself; the projection is the first count with a verdict, and that verdict.
     rng = np.random.default_rng(3)
     checked = 0
-    while checked < 200:
+    while checked < 2000:
         value = rng.uniform(0.2, 0.8)
         low, high = value - rng.uniform(0.05, 0.4), value + rng.uniform(0.05, 0.4)
         n = int(rng.integers(5, 40))
@@ -126,7 +130,8 @@ def test_seeds_to_settle_is_symmetric_about_one_half() -> None:
     # Swapping the two methods maps P to 1 - P and [low, high] to [1 - high, 1 - low]:
     # the same seeds, supported and contradicted exchanged.
     swap = {"supported": "contradicted", "contradicted": "supported", "equivalent": "equivalent"}
-    for value, low, high in ((0.61, 0.34, 0.84), (0.53, 0.25, 0.79), (0.7, 0.45, 0.9)):
+    cases = ((0.61, 0.34, 0.84), (0.53, 0.25, 0.79), (0.7, 0.45, 0.9), (0.57, 0.37, 0.77))
+    for value, low, high in cases:
         seeds, said = seeds_to_settle(value, low, high, 10) or (0, "")
         assert seeds_to_settle(1 - value, 1 - high, 1 - low, 10) == (seeds, swap[said])
 

@@ -37,6 +37,7 @@ __all__ = [
     "EQUIVALENCE_BOUNDS",
     "MIN_SEEDS",
     "SETTLE_CAP",
+    "SETTLE_LEGEND",
     "claims_markdown",
     "seeds_to_settle",
     "settle_text",
@@ -111,7 +112,10 @@ SETTLE_CAP = 1000
 
 def _arms_needed(n: int, arm: float, room: float) -> int:
     """The fewest seeds at which a CI arm of length ``arm`` at ``n`` seeds, shrinking as
-    1/sqrt(seeds), is shorter than ``room``: ``n * (arm / room)**2``, rounded up past it."""
+    1/sqrt(seeds), is shorter than ``room`` by more than :data:`EDGE_TOLERANCE` (as
+    :func:`verdict` reads a CI): ``n * (arm / (room - EDGE_TOLERANCE))**2``, rounded up past
+    it."""
+    room -= EDGE_TOLERANCE
     return n + 1 if arm <= 0 else max(n + 1, math.floor(n * (arm / room) ** 2) + 1)
 
 
@@ -119,14 +123,20 @@ def seeds_to_settle(value: float, low: float, high: float, n: int) -> tuple[int,
     """A rough projection for a ``cannot tell`` CI ``[low, high]`` of P(PPO-RPE > rival) =
     ``value`` at ``n`` seeds per method: the fewest seeds per method at which it would give a
     verdict, and which (``supported``, ``contradicted`` or ``equivalent``), if ``value``
-    stayed and each arm of the CI (``value - low``, ``high - value``) shrank as 1/sqrt(n), as a
-    bootstrap CI's arms do once n is large.
+    stayed and each arm of the CI (``value - low``, ``high - value``) shrank as 1/sqrt(seeds),
+    as a bootstrap CI's arms do once there are many.
 
     To clear 0.5 the arm towards it must become shorter than ``abs(value - 0.5)``: ``n * (arm
     / abs(value - 0.5))**2`` seeds; to be equivalent both arms must fit inside
-    :data:`EQUIVALENCE_BOUNDS`. The smaller wins. None where :func:`verdict` already gives a
-    verdict (or no data, or too few seeds). P itself moves as seeds are added, so this is a
-    planning figure, not a prediction."""
+    :data:`EQUIVALENCE_BOUNDS`. The smaller wins; at a tie, supported or contradicted, as
+    :func:`verdict` reads a CI above 0.5 and inside the bounds. None where :func:`verdict`
+    already gives a verdict (or no data, or too few seeds).
+
+    It is where the CI's expected end just reaches the bound: even if P were exactly
+    ``value``, a grid of that many seeds would give the verdict about half the time (about
+    twice as many give it with 80% odds, ((1.96 + 0.84) / 1.96)**2 = 2.04), and an
+    estimate far from 0.5 tends to overstate the distance, so it is a planning figure, not
+    a prediction."""
     if not all(map(math.isfinite, (value, low, high))):
         return None
     if not short_verdict(verdict(low, high, (n, n))).startswith("cannot tell"):
@@ -141,7 +151,8 @@ def seeds_to_settle(value: float, low: float, high: float, n: int) -> tuple[int,
         both = max(_arms_needed(n, value - low, value - lo_bound),
                    _arms_needed(n, high - value, hi_bound - value))  # fmt: skip
         options.append((both, "equivalent"))
-    return min(options)
+    seeds, said = min(options, key=lambda o: (o[0], o[1] == "equivalent"))
+    return seeds, said
 
 
 def settle_text(value: float, low: float, high: float, n: int) -> str:
@@ -156,9 +167,11 @@ def settle_text(value: float, low: float, high: float, n: int) -> str:
 
 SETTLE_LEGEND = (
     "**Seeds to settle it**: for a claim that cannot be told, a rough projection of the seeds "
-    "per method at which the CI would give a verdict, and which one, if P stayed at its "
-    "estimate and each arm of its CI shrank as 1/sqrt(seeds), as a bootstrap CI's do for many "
-    "seeds. P moves as seeds are added, so it is a planning figure, not a prediction."
+    "per method (per task, for a pooled row) at which the CI would give a verdict, and which "
+    "one, if P stayed at its estimate and each arm of its CI shrank as 1/sqrt(seeds), as a "
+    "bootstrap CI's do for many seeds. Even then that many seeds give the verdict only about "
+    "half the time (twice as many: about 80%), and P moves as seeds are added: a planning "
+    "figure, not a prediction."
 )
 """The sentence under a table with a seeds-to-settle column."""
 
