@@ -70,12 +70,21 @@ def test_repository_specs_parse() -> None:
     assert {r.config.learner.engine for r in paper.runs} == {"torch"}
     # The full-length spec is the same grid with HalfCheetah and Ant at 2000 episodes,
     # trained by the default (fused) engine.
+    # Ant has 25 seeds (0-24: 15 more, pre-registered in results/paper-full/preregistration.md),
+    # each configured as its seed 0 but for the seed.
     full = load_spec(ROOT / "experiments" / "paper-full.toml")
-    assert [r.key for r in full.runs] == [r.key for r in paper.runs]
-    for a, b in zip(paper.runs, full.runs, strict=True):
+    extra_ant = [r for r in full.runs if r.env == "ant" and r.seed >= 10]
+    assert [(r.seed, r.method) for r in extra_ant] == [
+        (s, m) for s in range(10, 25) for m in ("ppo", "rb", "rpe")
+    ]
+    assert [r.key for r in full.runs if r not in extra_ant] == [r.key for r in paper.runs]
+    for a, b in zip(paper.runs, [r for r in full.runs if r not in extra_ant], strict=True):
         long = a.env in ("halfcheetah", "ant")
         fused = replace(a.config, learner=replace(a.config.learner, engine="fused"))
         assert b.config == (replace(fused, episodes=2000) if long else fused)
+    ant0 = {r.method: r.config for r in full.runs if r.env == "ant" and r.seed == 0}
+    for run in extra_ant:
+        assert run.config == replace(ant0[run.method], seed=run.seed)
     quick = load_spec(ROOT / "experiments" / "quick.toml")
     assert set(quick.methods) == {"ppo", "rb", "rpe"} and len(quick.runs) < len(paper.runs)
     # The paper's reproduction keeps the author's choices (those results/paper ran with),
@@ -145,6 +154,13 @@ def test_the_committed_reproduction_is_the_paper_specs_runs(tmp_path: Path) -> N
         open_run_dir(copy, config_json(kind_of(run.config), run.config))  # raises if not
 
 
+def test_a_task_can_have_its_own_seeds(tmp_path: Path) -> None:
+    text = TINY_SPEC + "seeds = [3, 5]\n"
+    spec = load_spec(write_spec(tmp_path, text))
+    assert sorted({r.seed for r in spec.runs}) == [3, 5]
+    assert [r.config.seed for r in spec.runs] == [r.seed for r in spec.runs]
+
+
 def test_spec_overrides_reach_the_learner(tmp_path: Path) -> None:
     text = TINY_SPEC + "\n[tasks.learner]\nlr = 0.001\n"
     spec = load_spec(write_spec(tmp_path, text))
@@ -184,6 +200,8 @@ def test_malformed_top_level_fields_are_rejected(tmp_path: Path, line: str, fiel
         ('env = "pendulum"', "exactly one"),
         ('env = "pendulum"\nepisodes = 2.5', "episodes"),
         ('env = "pendulum"\nepisodes = 3\nspeed = 1', "unknown field"),
+        ('env = "pendulum"\nepisodes = 3\nseeds = 0', "seeds"),
+        ('env = "pendulum"\nepisodes = 3\nseeds = [1, 1]', "seeds"),
         ('env = "pendulum"\nepisodes = 3\n[tasks.learner]\neps = 2.0', "eps"),
         ('env = "pendulum"\nepisodes = 3\n[tasks.learner]\nwarp = 2.0', "warp"),
     ],

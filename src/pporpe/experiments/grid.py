@@ -16,6 +16,7 @@ A spec (see ``experiments/paper.toml``)::
     [[tasks]]
     env = "pendulum"
     episodes = 200             # or steps = N (batch runs: steps)
+    seeds = 25                 # optional: this task's own seeds (a count or a list)
     [tasks.learner]            # optional: overrides for this task only
     lr = 1e-4
 
@@ -50,7 +51,7 @@ _TOP_FIELDS = {
     "learner",
     "tasks",
 }
-_TASK_FIELDS = {"env", "episodes", "steps", "learner"}
+_TASK_FIELDS = {"env", "episodes", "steps", "seeds", "learner"}
 
 
 @dataclass(frozen=True)
@@ -243,7 +244,8 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
     for i, task in enumerate(tasks):
         at = f"{where}: tasks[{i}]"
         env, budget, task_learner = _parse_task(task, at, seen_envs)
-        for seed in seeds:
+        task_seeds = _parse_seeds(task["seeds"], at) if "seeds" in task else seeds
+        for seed in task_seeds:
             for method in methods:
                 build = functools.partial(kind.grid_config, env, method, seed, budget, common)
                 cfg = _run_config(build, base_learner, task_learner, where, at)
