@@ -206,7 +206,12 @@ HEADLINE_COMMAND = "python experiments/headline.py"
 
 
 def method_seeds(root: Path, grid: str, task: str) -> dict[str, int]:
-    """Finished seeds per method of ``task`` in a grid's ``summary.csv``."""
+    """Finished seeds per method of ``task`` in a grid's ``summary.csv`` (those of the
+    result that stands, :func:`standing_result`, while its pre-registered verdict is
+    pending)."""
+    standing = standing_result(root, grid).get(task)
+    if standing:
+        return dict(standing["seeds"])
     with open(root / grid / "summary.csv", encoding="utf-8") as f:
         return {r["method"]: int(r["seeds"]) for r in csv.DictReader(f) if r["task"] == task}
 
@@ -235,12 +240,49 @@ def headline_figure_stale(root: Path) -> bool:
     return bool(json.loads(path.read_text(encoding="utf-8")) != headline_sources(root))
 
 
+STANDING_HEADING = "## The result that stands until the pre-registered verdict"
+"""The section of a REPORT.md (``pporpe report``) that holds, for each task whose
+pre-registered verdict is pending, the result of its seeds finished before the
+pre-registration: the README keeps that result until the verdict is read."""
+
+
+def standing_result(root: Path, grid: str) -> dict[str, dict[str, Any]]:
+    """Per task of a grid's pending pre-registration (:data:`STANDING_HEADING`): its mean
+    scores per method name, the fewest seeds of a method, and its claims ((claim, task,
+    rival) -> (P [CI], verdict)), from that section of REPORT.md; empty if it has none."""
+    text = (root / grid / "REPORT.md").read_text(encoding="utf-8")
+    if STANDING_HEADING not in text:
+        return {}
+    section = text.split(STANDING_HEADING, 1)[1].split("\n## ", 1)[0]
+    scores = find_table(section, "mean score [95% CI]", f"{grid}/REPORT.md")
+    claims = find_table(section, "claim", f"{grid}/REPORT.md")
+    i = {name: scores[0].index(name) for name in ("task", "method", "seeds")}
+    mean = scores[0].index("mean score [95% CI]")
+    out: dict[str, dict[str, Any]] = {}
+    for r in scores[1:]:
+        task = out.setdefault(r[i["task"]], {"means": {}, "seeds": {}, "claims": {}})
+        task["means"][(r[i["task"]], r[i["method"]])] = float(r[mean].split()[0])
+        task["seeds"][r[i["method"]]] = int(r[i["seeds"]])
+    j = {name: claims[0].index(name) for name in ("claim", "task", "rival", "verdict")}
+    p = next(k for k, name in enumerate(claims[0]) if name.startswith("P(PPO-RPE"))
+    for r in claims[1:]:
+        key = (r[j["claim"]], r[j["task"]], r[j["rival"]])
+        out[r[j["task"]]]["claims"][key] = (r[p], r[j["verdict"]])
+    return out
+
+
 def readme_row(root: Path, grid: str, task: str) -> Row:
     """One task of an online grid: the task linked to the grid's report, its training
     episodes, seeds, the mean scores, P(PPO-RPE > rival) of the final score and the
     verdicts of the paper's claims of final score, early learning and regularisation ("-"
     where the paper makes no early-learning claim)."""
-    means, claims = paper_means(root, grid), paper_claims(root, grid)
+    standing = standing_result(root, grid).get(task)
+    if standing:  # a pre-registered verdict pending: the result that stands until then
+        means, claims = standing["means"], standing["claims"]
+        n_seeds = min(standing["seeds"].values())
+    else:
+        means, claims = paper_means(root, grid), paper_claims(root, grid)
+        n_seeds = grid_seeds(root, grid)[task]
     scores = " / ".join(f"{means[(task, m)]:.0f}" for m in METHODS.values())
     final = [claims[("final performance", task, rival)] for rival in RIVALS]
     early = [claims.get(("early learning", task, rival)) for rival in RIVALS]
@@ -252,7 +294,7 @@ def readme_row(root: Path, grid: str, task: str) -> Row:
     ]
     name = f"[{TASKS[task]}]({grid}/REPORT.md)"
     length = f"{training_length(root, grid)[task]} episodes"
-    seeds = str(grid_seeds(root, grid)[task])
+    seeds = str(n_seeds)
     return [name, length, seeds, scores, final[0][0], final[1][0], *verdicts]
 
 

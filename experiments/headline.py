@@ -22,6 +22,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from pporpe.experiments.preregistration import before_cells, load_preregistrations
 from pporpe.experiments.report_figures import CurvePanel, panel_figure
 from pporpe.experiments.results import Cell, load_results
 from pporpe.io import atomic_savefig, atomic_write_text
@@ -71,7 +72,11 @@ def main(argv: list[str] | None = None) -> int:
     sources = gen.headline_sources(args.root)
     if not sources:
         raise SystemExit("no grid of the paper's comparison is committed: nothing to draw")
-    grids = {src["grid"]: load_results(args.root / src["grid"]) for src in sources.values()}
+    grids = {  # a task whose pre-registered verdict is pending: the seeds before it
+        src["grid"]: before_cells(load_results(args.root / src["grid"]),
+                                  load_preregistrations(args.root / src["grid"]))
+        for src in sources.values()
+    }  # fmt: skip
     differ = len({smoothing(src["episodes"]) for src in sources.values()}) > 1
     panels = [panel(grids[src["grid"]], task, gen.TASKS[task], src, differ)
               for task, src in sources.items()]  # fmt: skip

@@ -34,6 +34,13 @@ from typing import Any
 from ..io import atomic_savefig, atomic_write_text
 from .batch_report import write_batch_report
 from .batch_results import is_batch_grid
+from .preregistration import (
+    Preregistration,
+    before_cells,
+    load_preregistrations,
+    pending_tasks,
+    preregistration_lines,
+)
 from .report_figures import curve_figure, summary_figure
 from .results import (
     EARLY_EPISODES,
@@ -95,19 +102,45 @@ def _compute(root: Path, grid: dict[str, Any]) -> list[str]:
     return [line] if line else []
 
 
+STANDING_HEADING = "## The result that stands until the pre-registered verdict"
+"""The heading of the report's section on a pending pre-registration's earlier seeds (the
+README's row of such a task comes from it: docs/generate.py)."""
+
+
+def _standing_section(cells: list[Cell], regs: dict[str, Preregistration]) -> list[str]:
+    """For tasks whose pre-registered verdict is pending: their scores and claims on the
+    seeds finished before the pre-registration, the result that stands until it is read."""
+    pending = pending_tasks(cells, regs)
+    if not pending:
+        return []
+    before = [c for c in before_cells(cells, regs) if c.env in pending]
+    stats = statistics(before)
+    seeds = ", ".join(f"{t}: seeds 0-{regs[t].seeds_before - 1}" for t in pending)
+    return [
+        f"{STANDING_HEADING}\n",
+        f"The seeds finished before the pre-registration ({seeds}), as reported then; the "
+        "pre-registered verdict replaces this when all its runs are in.\n",
+        summary_markdown(before, stats),
+        claims_markdown(before, stats),
+    ]
+
+
 def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = None) -> str:
     """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
     and the folder's hand-written ``notes.md`` (if any) at the top."""
     stats = statistics(cells) if stats is None else stats
     grid = json.loads((root / "grid.json").read_text())
+    regs = load_preregistrations(root)
+    ran = _budget_lines(grid, cells) + preregistration_lines(cells, regs) + _compute(root, grid)
     parts = report_head(root, grid)
     parts += [
         "## What ran\n",
-        "\n".join(_budget_lines(grid, cells) + _compute(root, grid)) + "\n",
+        "\n".join(ran) + "\n",
         "## Scores, early learning, regularisation\n",
         summary_markdown(cells, stats),
         "## The paper's claims against these data\n",
-        claims_markdown(cells, stats),
+        claims_markdown(cells, stats, pending_tasks(cells, regs)),
+        *_standing_section(cells, regs),
         "## Figures\n",
         "- Test scores per seed and their mean: ![summary](fig_summary.png)\n"
         "- Learning curves (mean over seeds, 95% band): ![learning](fig_learning.png)\n"

@@ -25,6 +25,7 @@ method would give one, were the estimate of P to stay where it is.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 from .figures import METHOD_LABELS
 from .results import Cell
@@ -182,10 +183,15 @@ def short_verdict(said: str) -> str:
     return said.split(" (")[0]
 
 
-def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
+def claims_markdown(
+    cells: list[Cell], stats: Statistics | None = None, pending: Mapping[str, str] | None = None
+) -> str:
     """One line per claim, task and rival: the probability of improvement, the difference of
     the means, the verdict and, where it cannot tell, the seeds that would settle it
-    (:func:`settle_text`)."""
+    (:func:`settle_text`). A task of ``pending`` (task -> ``36 of 75 runs``, from
+    :func:`.preregistration.pending_tasks`) has a pre-registered verdict not yet read: its
+    verdicts say so before the interim one."""
+    pending = pending or {}
     rows = improvement_rows(cells) if stats is None else stats.improvements
     lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] "
              "| mean difference, PPO-RPE - rival [95% CI] | verdict | seeds to settle it |",
@@ -196,6 +202,9 @@ def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
                 continue
             said = verdict(r[f"{stat}_low"], r[f"{stat}_high"], r[f"{stat}_n"],
                            r[f"{stat}_left_out"])  # fmt: skip
+            if r["task"] in pending:  # no planning figure: the seeds are fixed
+                said = f"pending (pre-registered; {pending[r['task']]} in); interim: {said}"
+                settle = "- (pre-registered)"
             settle = settle_text(r[f"{stat}_value"], r[f"{stat}_low"], r[f"{stat}_high"],
                                  min(r[f"{stat}_n"]))  # fmt: skip
             lines.append(
