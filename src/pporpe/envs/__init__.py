@@ -27,13 +27,13 @@ environment from :func:`make_env` is wrapped in :class:`QuietBulletStart`, which
 silences the descriptors for that one reset.
 
 The paper's four tasks are stepped by pporpe's own implementation
-(:mod:`pporpe.bullet_step`): pybullet_envs_gymnasium's classes and models with a step
+(:mod:`pporpe.envs.bullet`): pybullet_envs_gymnasium's classes and models with a step
 computed from a few batched PyBullet calls, bit for bit the same numbers at about twice the
 speed. ``make_env(..., bullet_step="reference")``, or the environment variable
 ``PPORPE_BULLET_STEP=reference`` for a whole process (``pporpe train``, a grid's workers),
 builds pybullet_envs_gymnasium's own step instead, to check a result against it.
 Gymnasium's -v4 locomotion tasks (Hopper, Walker2d, HalfCheetah, Ant) are stepped the same
-way by :mod:`pporpe.mujoco_step`: Gymnasium's classes with a step that computes the same
+way by :mod:`pporpe.envs.mujoco`: Gymnasium's classes with a step that computes the same
 numbers with less Python; ``mujoco_step="reference"`` or ``PPORPE_MUJOCO_STEP=reference``
 builds Gymnasium's own.
 """
@@ -56,6 +56,19 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from .registration import (
+    ALIASES,
+    BATCHED_ENTRY_POINTS,
+    BULLET_STEP_VARIABLE,
+    BULLET_STEPS,
+    MUJOCO_INSTALL,
+    MUJOCO_LEAN_ENTRY_POINTS,
+    MUJOCO_STEP_VARIABLE,
+    MUJOCO_STEPS,
+)
+from .registration import BULLET_PACKAGE as _BULLET_PACKAGE
+from .registration import GYMNASIUM_MUJOCO_PACKAGE as _MUJOCO_ENTRY_POINTS
+
 __all__ = [
     "ALIASES",
     "BULLET_STEPS",
@@ -72,44 +85,6 @@ __all__ = [
     "mujoco_step_choice",
     "resolve_env_id",
 ]
-
-ALIASES: dict[str, str] = {
-    "pendulum": "InvertedPendulumBulletEnv-v0",
-    "swingup": "InvertedPendulumSwingupBulletEnv-v0",
-    "halfcheetah": "HalfCheetahBulletEnv-v0",
-    "ant": "AntBulletEnv-v0",
-}
-"""Short names of the paper's four tasks and their Gymnasium ids."""
-
-_BULLET_PACKAGE = "pybullet_envs_gymnasium"
-
-BULLET_STEPS = ("batched", "reference")
-"""How the paper's four Bullet tasks are stepped: ``"batched"`` (pporpe's step,
-:mod:`pporpe.bullet_step`, the default) or ``"reference"`` (pybullet_envs_gymnasium's)."""
-
-BULLET_STEP_VARIABLE = "PPORPE_BULLET_STEP"
-"""The environment variable that sets the default of ``make_env``'s ``bullet_step``."""
-
-MUJOCO_INSTALL = 'pip install -c constraints.txt -e ".[mujoco]"'
-"""What to install for Gymnasium's MuJoCo tasks (``HalfCheetah-v5``, ``Ant-v5``, ...): the
-one place the error of a MuJoCo task without MuJoCo takes it from."""
-
-_MUJOCO_ENTRY_POINTS = "gymnasium.envs.mujoco"
-
-MUJOCO_STEPS = ("lean", "reference")
-"""How Gymnasium's -v4 locomotion tasks are stepped: ``"lean"`` (pporpe's step,
-:mod:`pporpe.mujoco_step`, the default) or ``"reference"`` (Gymnasium's)."""
-
-MUJOCO_STEP_VARIABLE = "PPORPE_MUJOCO_STEP"
-"""The environment variable that sets the default of ``make_env``'s ``mujoco_step``."""
-
-MUJOCO_LEAN_ENTRY_POINTS: dict[str, str] = {
-    "Hopper-v4": "pporpe.mujoco_step:HopperLeanEnv",
-    "Walker2d-v4": "pporpe.mujoco_step:Walker2dLeanEnv",
-    "HalfCheetah-v4": "pporpe.mujoco_step:HalfCheetahLeanEnv",
-    "Ant-v4": "pporpe.mujoco_step:AntLeanEnv",
-}
-"""The Gymnasium ids that :mod:`pporpe.mujoco_step` steps, and its classes for them."""
 
 
 def _missing_dependency(env_id: str, entry_point: Any, exc: Exception) -> ImportError:
@@ -247,8 +222,6 @@ def _spec(env_id: str, bullet_step: str, mujoco_step: str) -> Any:
 
 def _bullet_spec(env_id: str, bullet_step: str) -> Any:
     """The id's registered spec, with pporpe's step as its entry point where it has one."""
-    from .bullet_step import BATCHED_ENTRY_POINTS
-
     spec = gymnasium.envs.registry[env_id]
     if bullet_step == "batched" and env_id in BATCHED_ENTRY_POINTS:
         return dataclasses.replace(spec, entry_point=BATCHED_ENTRY_POINTS[env_id])
@@ -270,12 +243,12 @@ def make_env(
             ``sample``). The environment's own generator is seeded by the
             caller's first ``env.reset(seed=seed)``, as Gymnasium intends.
         bullet_step: for the paper's four Bullet tasks, ``"batched"`` (pporpe's step,
-            :mod:`pporpe.bullet_step`) or ``"reference"`` (pybullet_envs_gymnasium's): the
+            :mod:`pporpe.envs.bullet`) or ``"reference"`` (pybullet_envs_gymnasium's): the
             same numbers bit for bit, the first about twice as fast. Default: the
             environment variable ``PPORPE_BULLET_STEP``, else ``"batched"``. Other tasks
             ignore it.
         mujoco_step: for Gymnasium's -v4 locomotion tasks (:data:`MUJOCO_LEAN_ENTRY_POINTS`),
-            ``"lean"`` (pporpe's step, :mod:`pporpe.mujoco_step`) or ``"reference"``
+            ``"lean"`` (pporpe's step, :mod:`pporpe.envs.mujoco`) or ``"reference"``
             (Gymnasium's): the same numbers bit for bit, the first with less Python per
             step. Default: the environment variable ``PPORPE_MUJOCO_STEP``, else
             ``"lean"``. Other tasks ignore it.
@@ -291,9 +264,8 @@ def make_env(
 
     Raises:
         ValueError: unknown name; a ``bullet_step`` outside :data:`BULLET_STEPS`, a
-            ``mujoco_step`` outside :data:`MUJOCO_STEPS`; an
-            action space that is not a ``gymnasium.spaces.Box`` or not 1-D with finite
-            bounds; an observation space that is not a 1-D Box.
+            ``mujoco_step`` outside :data:`MUJOCO_STEPS`; an action space not a 1-D
+            ``gymnasium.spaces.Box`` with finite bounds; an observation space not a 1-D Box.
         ImportError: the task's package is not installed (a MuJoCo task without MuJoCo:
             :data:`MUJOCO_INSTALL`), saying what to install.
     """
