@@ -23,12 +23,12 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from ..config import config_from_dict
-from ..io import atomic_write_text
-from ..runs.cadence import CHECKPOINT_WITHIN_S
-from ..runs.kinds import get_kind
-from ..runs.stopping import Interrupted
-from ..text import count
+from ...config import config_from_dict
+from ...io import atomic_write_text
+from ...runs.cadence import CHECKPOINT_WITHIN_S
+from ...runs.kinds import get_kind
+from ...runs.stopping import Interrupted
+from ...text import count
 from .planning import Job
 from .progress import GridProgress
 
@@ -96,7 +96,7 @@ def run_job(
         with contextlib.ExitStack() as locks:
             for path in paths:
                 locks.enter_context(_run_lock(path))
-            from ..runs.loop import run_queue
+            from ...runs.loop import run_queue
 
             results = run_queue(
                 list(zip(cfgs, paths, strict=True)),

@@ -14,10 +14,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_write_json
-from ..runs.folder import same_run_config
-from ..runs.kinds import kind_of
-from .grid import GridSpec, spec_summary
+from ...io import atomic_write_json
+from ...runs.folder import same_run_config
+from ...runs.kinds import kind_of
+from .spec import GridSpec, spec_summary
 
 __all__ = ["grid_status", "merged_grid_summary", "write_grid_summary", "write_status"]
 

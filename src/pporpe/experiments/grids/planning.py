@@ -6,8 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..runs.folder import config_json
-from ..runs.kinds import kind_of
+from ...runs.folder import config_json
+from ...runs.kinds import kind_of
 
 __all__ = ["POPULATIONS", "POPULATION_KINDS", "Job", "plan_jobs"]
 

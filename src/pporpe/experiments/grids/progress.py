@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..runs.cadence import LIVE_SECONDS, RECENT_EPISODES, read_live
+from ...runs.cadence import LIVE_SECONDS, RECENT_EPISODES, read_live
 
 __all__ = ["RECENT_EPISODES", "GridProgress", "RunProgress", "run_progress"]
 

@@ -27,16 +27,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..envs import make_env
-from ..runs.cadence import CHECKPOINT_WITHIN_S
-from ..runs.folder import CHECKPOINT, check_checkpoint
-from ..runs.population_checkpoint import adopt_orphaned_states, discard_finished
-from ..text import count
+from ...envs import make_env
+from ...runs.cadence import CHECKPOINT_WITHIN_S
+from ...runs.folder import CHECKPOINT, check_checkpoint
+from ...runs.population_checkpoint import adopt_orphaned_states, discard_finished
+from ...text import count
 from .backends import BACKENDS, run_job, run_local, run_ray
-from .grid import GridSpec
 from .merge import merged_grid_summary, write_grid_summary, write_status
 from .planning import POPULATIONS, Job, plan_jobs
 from .progress import GridProgress
+from .spec import GridSpec
 
 __all__ = ["GridOutcome", "Job", "merged_grid_summary", "plan_jobs", "reproduce", "run_job"]
 

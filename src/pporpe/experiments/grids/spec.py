@@ -34,10 +34,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..config import is_int
-from ..envs import resolve_env_id
-from ..runs.kinds import get_kind
-from ..surrogates import METHODS
+from ...config import is_int
+from ...envs import resolve_env_id
+from ...runs.kinds import get_kind
+from ...surrogates import METHODS
 
 __all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec", "select_runs"]
 

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from .. import surrogates as S
-from ..io import atomic_savefig
+from ... import surrogates as S
+from ...io import atomic_savefig
 
 __all__ = [
     "METHOD_COLORS",

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ..runs.kinds import SurrogateDiagnostics
-from ..runs.logger import EpisodeRecord, read_records
+from ...runs.kinds import SurrogateDiagnostics
+from ...runs.logger import EpisodeRecord, read_records
 
 __all__ = [
     "DIAGNOSTICS",

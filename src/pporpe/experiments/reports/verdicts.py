@@ -1,8 +1,9 @@
-"""The paper's claims against a grid's data: a probability of improvement, the difference
-of the means, and a verdict.
+"""The verdict on a claim, for both reports: what the CI of a probability of improvement says.
 
-One per claim (final score, early learning, regularisation), task and rival. The verdict
-reads the 95% CI [low, high] of P(PPO-RPE > rival) (:func:`verdict`), in this order:
+The online report's claims table (:mod:`.online.claims`) gives one per claim (final score,
+early learning, regularisation), task and rival; the batch report one per metric, task and
+rival. The verdict reads the 95% CI [low, high] of P(PPO-RPE > rival) (:func:`verdict`), in
+this order:
 
 1. ``no data``: a method has no finite value;
 2. ``too few seeds (n = N)``: a method has fewer than :data:`MIN_SEEDS` seeds;
@@ -26,39 +27,17 @@ from __future__ import annotations
 
 import math
 
-from .figures import METHOD_LABELS
-from .results import Cell
-from .summary import Statistics, improvement_rows
-from .tables import fmt_ci
-
 __all__ = [
-    "CLAIMS",
     "EDGE_TOLERANCE",
     "EQUIVALENCE_BOUNDS",
     "MIN_SEEDS",
     "SETTLE_CAP",
     "SETTLE_LEGEND",
-    "claims_markdown",
     "seeds_to_settle",
     "settle_text",
     "short_verdict",
     "verdict",
 ]
-
-CLAIMS = (
-    ("score", "final performance: PPO-RPE scores as well as or better than", None),
-    (
-        "first50",
-        "early learning: PPO-RPE learns faster from the early stage than",
-        ("pendulum", "swingup"),
-    ),
-    ("reg", "regularisation: PPO-RPE regularises more strongly than", None),
-)
-"""The paper's claims checked by the report: the statistic, the claim, the tasks it is
-made for (None: all)."""
-
-DIFF_DIGITS = {"score": 1, "first50": 1, "reg": 4}
-"""Decimals of each statistic's mean difference in the claims table."""
 
 MIN_SEEDS = 5
 """The fewest seeds a method needs for a verdict. With fewer, a bootstrap over seeds has
@@ -180,50 +159,3 @@ def short_verdict(said: str) -> str:
     """A :func:`verdict` without what follows its word in brackets (the reason, and the
     seeds left out after it): ``cannot tell at 10 seeds``."""
     return said.split(" (")[0]
-
-
-def claims_markdown(cells: list[Cell], stats: Statistics | None = None) -> str:
-    """One line per claim, task and rival: the probability of improvement, the difference of
-    the means, the verdict and, where it cannot tell, the seeds that would settle it
-    (:func:`settle_text`)."""
-    rows = improvement_rows(cells) if stats is None else stats.improvements
-    lines = ["| claim | task | rival | P(PPO-RPE > rival) [95% CI] "
-             "| mean difference, PPO-RPE - rival [95% CI] | verdict | seeds to settle it |",
-             "| --- | --- | --- | :---: | :---: | --- | --- |"]  # fmt: skip
-    for stat, claim, tasks in CLAIMS:
-        for r in rows:
-            if tasks is not None and r["task"] not in tasks:
-                continue
-            said = verdict(r[f"{stat}_low"], r[f"{stat}_high"], r[f"{stat}_n"],
-                           r[f"{stat}_left_out"])  # fmt: skip
-            settle = settle_text(r[f"{stat}_value"], r[f"{stat}_low"], r[f"{stat}_high"],
-                                 min(r[f"{stat}_n"]))  # fmt: skip
-            lines.append(
-                f"| {claim.split(':')[0]} | {r['task']} | "
-                f"{METHOD_LABELS.get(r['rival'], r['rival'])} | {fmt_ci(r, stat, 2)} | "
-                f"{fmt_ci(r, f'{stat}_diff', DIFF_DIGITS[stat])} | {said} | {settle} |"
-            )
-    return "\n".join(lines) + "\n\n" + _legend() + "\n"
-
-
-def _legend() -> str:
-    """The claims, then how to read the verdicts."""
-    claims = "\n".join(
-        f"- **{c.split(':')[0]}**:{c.split(':', 1)[1]} the rival"
-        + ("" if tasks is None else f" (claimed for {', '.join(tasks)})")
-        for _, c, tasks in CLAIMS
-    )
-    lo_bound, hi_bound = EQUIVALENCE_BOUNDS
-    return (
-        claims + "\n\n"
-        "Verdicts, from the 95% CI of P(PPO-RPE > rival): **supported** when it lies above "
-        "0.5, **contradicted** when below, **equivalent** when it lies strictly inside "
-        f"{lo_bound}-{hi_bound} (Vargha and Delaney's bounds of a medium effect: no difference "
-        "of medium size or more), otherwise **cannot tell**. A CI that touches 0.5 or a bound "
-        "is not past it. No verdict where a method has fewer than "
-        f"{MIN_SEEDS} seeds. The two methods are compared on the seeds both finished (a grid "
-        "still running, a failed run: the verdict says how many were left out). Mean "
-        "difference: of the claim's statistic (score, first-50 return, regularisation "
-        "amount), with a bootstrap CI resampling both methods' seeds. "
-        + SETTLE_LEGEND + "\n"
-    )

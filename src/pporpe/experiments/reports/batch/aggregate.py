@@ -1,6 +1,6 @@
 """The aggregate over the tasks of a batch grid, as rliable computes it (Agarwal et al. 2021).
 
-For each of :data:`.batch_results.METRICS`:
+For each of :data:`.batch.results.METRICS`:
 
 * **normalisation per task** (:func:`task_ranges`): a run's value ``x`` on a task becomes
   ``(x - lo) / (hi - lo)``, with ``lo`` and ``hi`` the lowest and highest value of that
@@ -23,14 +23,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .batch_results import METRICS, BatchCell, batch_tasks
-from .stats import (
+from ..stats import (
     Estimate,
     average_probability_of_improvement_ci,
     common_seeds,
     stratified_iqm_ci,
 )
-from .verdicts import verdict
+from ..verdicts import verdict
+from .results import METRICS, BatchCell, batch_tasks
 
 __all__ = [
     "Aggregate",

@@ -1,11 +1,11 @@
 """``pporpe report`` on a grid of batch runs: per task and over tasks, by steps.
 
-For a grid whose runs are batch runs (:func:`.batch_results.is_batch_grid`), writes
+For a grid whose runs are batch runs (:func:`.results.is_batch_grid`), writes
 
 * ``REPORT.md``: what ran (the settings the runs share, the commands), the aggregate over
   tasks (:mod:`.aggregate`: IQM of the normalised values, P(PPO-RPE > rival) pooled over
   tasks, with verdicts), then per task and method the three numbers of
-  :data:`.batch_results.METRICS` (mean and IQM over seeds, bootstrap CIs), per task and
+  :data:`.results.METRICS` (mean and IQM over seeds, bootstrap CIs), per task and
   rival P(PPO-RPE > rival), the difference of the means and the verdict of each number
   (:func:`.verdicts.verdict`), the surrogate diagnostics by quarter of steps, the figures;
 * ``summary.md`` (the tables), ``summary.csv`` (a row per task and method) and ``runs.csv``
@@ -20,11 +20,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..io import atomic_savefig, atomic_write_text
-from .batch_results import load_batch
-from .batch_summary import batch_statistics, runs_csv, summary_csv
-from .batch_tables import batch_report_markdown, batch_summary_markdown
-from .report_figures import aggregate_figure, step_curve_figure, summary_figure
+from ....io import atomic_savefig, atomic_write_text
+from ..plots import summary_figure
+from .figures import aggregate_figure, step_curve_figure
+from .results import load_batch
+from .summary import batch_statistics, runs_csv, summary_csv
+from .tables import batch_report_markdown, batch_summary_markdown
 
 __all__ = ["write_batch_report"]
 
@@ -50,4 +51,3 @@ def write_batch_report(out: str | Path, smooth: int = 10) -> list[Path]:
         for ext in ("png", "pdf"):
             written.append(atomic_savefig(fig, root / f"{name}.{ext}"))
     return written
-

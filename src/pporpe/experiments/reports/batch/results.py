@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runs.logger import EpisodeRecord, LoggedUpdate, read_updates
-from .results import QUARTERS, Cell, load_results
+from ....runs.logger import EpisodeRecord, LoggedUpdate, read_updates
+from ..results import QUARTERS, Cell, load_results
 
 __all__ = [
     "LAST_EPISODES",

@@ -1,5 +1,5 @@
-"""The statistics of a batch report (:mod:`.batch_report`), computed once: per task and
-method the three numbers of :data:`.batch_results.METRICS` over seeds, per task and rival
+"""The statistics of a batch report (:mod:`.batch.report`), computed once: per task and
+method the three numbers of :data:`.batch.results.METRICS` over seeds, per task and rival
 PPO-RPE's probability of improvement and difference of means with their verdicts, the
 surrogate diagnostics by quarter of steps, and the aggregate over tasks (:mod:`.aggregate`);
 and the report's CSV tables.
@@ -15,11 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from .aggregate import Aggregate, aggregate
-from .batch_results import METRICS, QUARTER_FIELDS, BatchCell, batch_tasks
-from .figures import METHOD_LABELS
-from .results import QUARTERS
-from .stats import (
+from ..figures import METHOD_LABELS
+from ..results import QUARTERS
+from ..stats import (
     Estimate,
     bootstrap_ci,
     common_seeds,
@@ -27,8 +25,10 @@ from .stats import (
     mean_difference_ci,
     probability_of_improvement_ci,
 )
-from .summary import QuarterRow
-from .verdicts import verdict
+from ..tables import QuarterRow
+from ..verdicts import verdict
+from .aggregate import Aggregate, aggregate
+from .results import METRICS, QUARTER_FIELDS, BatchCell, batch_tasks
 
 __all__ = [
     "BatchRow",
@@ -64,7 +64,7 @@ class BatchRow:
     missing: int
     """Runs not finished."""
     metrics: tuple[MetricSummary, ...]
-    """One per :data:`.batch_results.METRICS`, in their order."""
+    """One per :data:`.batch.results.METRICS`, in their order."""
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,7 @@ def _seed_mean(values: list[float]) -> float:
 
 
 def quarter_rows(cells: list[BatchCell]) -> list[QuarterRow]:
-    """Per (task, method): each of :data:`.batch_results.QUARTER_FIELDS` by quarter of
+    """Per (task, method): each of :data:`.batch.results.QUARTER_FIELDS` by quarter of
     steps, the mean over seeds of the runs' quarter means."""
     rows = []
     for c in cells:

@@ -1,19 +1,19 @@
-"""The Markdown of a batch report (:mod:`.batch_report`): REPORT.md and summary.md, from
-:func:`.batch_summary.batch_statistics`."""
+"""The Markdown of a batch report (:mod:`.batch.report`): REPORT.md and summary.md, from
+:func:`.batch.summary.batch_statistics`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
+from ..figures import METHOD_LABELS
+from ..results import QUARTERS, Cell, compute_line, tasks_of
+from ..stats import N_RESAMPLES, Estimate
+from ..tables import quarter_markdown, report_head
+from ..verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS, SETTLE_LEGEND, settle_text, short_verdict
 from .aggregate import Aggregate
-from .batch_results import LAST_EPISODES, METRICS, Metric
-from .batch_summary import BatchStatistics, Comparison
-from .figures import METHOD_LABELS
-from .results import QUARTERS, Cell, compute_line, tasks_of
-from .stats import N_RESAMPLES, Estimate
-from .tables import quarter_markdown, report_head
-from .verdicts import EQUIVALENCE_BOUNDS, MIN_SEEDS, SETTLE_LEGEND, settle_text, short_verdict
+from .results import LAST_EPISODES, METRICS, Metric
+from .summary import BatchStatistics, Comparison
 
 __all__ = [
     "BATCH_QUARTER_LEGEND",

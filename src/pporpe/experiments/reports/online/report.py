@@ -1,17 +1,17 @@
-"""``pporpe report``: REPORT.md, the summary tables and the figures of a grid's results.
+"""``pporpe report`` on a grid of online runs: REPORT.md, the summary tables and the figures.
 
 Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``
-(:mod:`.results`); writes
+(:mod:`..results`); writes
 
 * ``REPORT.md``: what ran, the tables below, and each claim of the paper (final score,
   early learning on the pendulum tasks, strength of regularisation) against the data, as
   a probability of improvement with its CI, the difference of the means with its CI, and
-  a verdict (:mod:`.verdicts`: supported, contradicted, equivalent or cannot tell; none
-  from fewer than 5 seeds or different seeds); a hand-written ``notes.md`` in the folder
-  goes at its top;
+  a verdict (:mod:`.claims`, :mod:`..verdicts`: supported, contradicted, equivalent or
+  cannot tell; none from fewer than 5 seeds or different seeds); a hand-written
+  ``notes.md`` in the folder goes at its top;
 * ``summary.md`` / ``summary.csv`` (:mod:`.tables`, from :mod:`.summary`): per task and
   method, over seeds of the per-seed median test score: the mean and the IQM with
-  bootstrap 95% CIs (:mod:`.stats`; the CSV also has the Student-t interval), the mean
+  bootstrap 95% CIs (:mod:`..stats`; the CSV also has the Student-t interval), the mean
   return of the first 50 training episodes, the mean regularisation amount; how often the
   ratio was past the threshold and how far it was from 1 (how much the surrogates can
   differ), over the run and by quarter of training; then P(PPO-RPE > rival) for the
@@ -20,9 +20,9 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``
 * ``fig_learning``: learning curves per task, mean over seeds, 95% bands (Fig. 4, ``sim_learn``);
 * ``fig_regularization``: trajectories of sigma*(rho - rho_dagger) (Fig. 5, ``sim_isr_diff``);
 
-each figure as PNG and PDF (:mod:`.report_figures`). Unfinished or failed runs are left
-out and counted. A grid of batch runs (``kind = "batch"``) gets its own report, by steps
-and over tasks (:mod:`.batch_report`).
+each figure as PNG and PDF (:mod:`..plots`). Unfinished or failed runs are left out and
+counted. :func:`pporpe.experiments.reports.report.write_report` sends a grid of batch runs
+(``kind = "batch"``) to its own report, by steps and over tasks (:mod:`..batch.report`).
 """
 
 from __future__ import annotations
@@ -31,39 +31,15 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..io import atomic_savefig, atomic_write_text
-from .batch_report import write_batch_report
-from .batch_results import is_batch_grid
-from .report_figures import curve_figure, summary_figure
-from .results import (
-    EARLY_EPISODES,
-    Cell,
-    compute_line,
-    early_return,
-    load_results,
-    mean_regularization,
-    tasks_of,
-    update_mean,
-)
-from .stats import mean_ci
-from .summary import Statistics, improvement_rows, statistics
-from .tables import report_head, summary_csv, summary_markdown
-from .verdicts import claims_markdown
+from ....io import atomic_savefig, atomic_write_text
+from ..plots import curve_figure, summary_figure
+from ..results import Cell, compute_line, load_results, tasks_of
+from ..tables import report_head
+from .claims import claims_markdown
+from .summary import Statistics, statistics
+from .tables import summary_csv, summary_markdown
 
-__all__ = [
-    "EARLY_EPISODES",
-    "Cell",
-    "Statistics",
-    "early_return",
-    "improvement_rows",
-    "load_results",
-    "mean_ci",
-    "mean_regularization",
-    "report_markdown",
-    "statistics",
-    "update_mean",
-    "write_report",
-]
+__all__ = ["report_markdown", "write_online_report"]
 
 
 def _run_budget(cfg: dict[str, Any]) -> Any:
@@ -90,7 +66,7 @@ def _budget_lines(grid: dict[str, Any], cells: list[Cell]) -> list[str]:
 
 
 def _compute(root: Path, grid: dict[str, Any]) -> list[str]:
-    """The grid's compute line (:func:`.results.compute_line`), if its runs record one."""
+    """The grid's compute line (:func:`..results.compute_line`), if its runs record one."""
     line = compute_line(root, grid)
     return [line] if line else []
 
@@ -118,14 +94,10 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     return "\n".join(parts)
 
 
-def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
-    """Write the summary table and figures into ``out`` (the grid's results folder); a grid
-    of batch runs gets the batch report (:func:`.batch_report.write_batch_report`)."""
-    if not (isinstance(smooth, int) and smooth >= 1):
-        raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
+def write_online_report(out: str | Path, smooth: int = 10) -> list[Path]:
+    """Write REPORT.md, the summary tables and the figures of the online grid in ``out`` (the
+    grid's results folder), learning curves smoothed over ``smooth`` episodes."""
     root = Path(out)
-    if (root / "grid.json").exists() and is_batch_grid(root):
-        return write_batch_report(root, smooth)
     cells = load_results(root)
     stats = statistics(cells)  # once for the three files
     written = [

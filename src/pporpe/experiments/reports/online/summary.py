@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from .figures import METHOD_LABELS
-from .results import (
+from ..figures import METHOD_LABELS
+from ..results import (
     QUARTERS,
     Cell,
     early_return,
@@ -18,7 +18,7 @@ from .results import (
     tasks_of,
     update_mean,
 )
-from .stats import (
+from ..stats import (
     Estimate,
     bootstrap_ci,
     common_seeds,
@@ -27,34 +27,15 @@ from .stats import (
     mean_difference_ci,
     probability_of_improvement_ci,
 )
+from ..tables import QuarterRow
 
 __all__ = [
-    "QuarterRow",
     "Statistics",
     "cell_rows",
     "improvement_rows",
     "quarter_rows",
     "statistics",
 ]
-
-
-@dataclass(frozen=True)
-class QuarterRow:
-    """Where a surrogate acts, for one task and method: per quarter of training
-    (:func:`.results.quarter_means`), the share of updates past the threshold and the mean
-    abs(rho - 1), each the mean over seeds of the runs' update-weighted means."""
-
-    task: str
-    method: str
-    seeds: int
-    """Runs averaged (finished runs of the cell)."""
-    past: tuple[float, ...]
-    """Share of updates past the threshold, per quarter (a fraction; NaN without data)."""
-    ratio_dev: tuple[float, ...]
-    """Mean abs(rho - 1) of the updates, per quarter (NaN without data)."""
-    approx_kl: tuple[float, ...] | None = None
-    """Approximate KL of the updates, per quarter (a batch grid's; None for an online grid,
-    whose learner logs none)."""
 
 
 @dataclass(frozen=True)
