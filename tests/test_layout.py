@@ -157,6 +157,22 @@ def test_what_the_reports_share_imports_neither_report() -> None:
         assert not reached, f"{name} -> {sorted(reached)}"
 
 
+def test_every_learner_kind_of_the_package_is_found_by_name() -> None:
+    """A module that registers a learner kind when imported is in ``runs.kinds._BUILTIN``,
+    so that ``get_kind`` finds its kind before anything imported it (a run folder's
+    ``config.json`` read in a fresh process)."""
+    from pporpe.runs.kinds import _BUILTIN
+
+    registering = set()
+    for name, path in FILES.items():
+        for node in ast.parse(path.read_text()).body:
+            calls = [n for n in ast.walk(node) if isinstance(n, ast.Call)]
+            if any(getattr(c.func, "id", None) == "register_kind" for c in calls):
+                registering.add(name)
+    assert {"pporpe.online.kind", "pporpe.batch.kind"} <= registering  # the scan sees them
+    assert registering == set(_BUILTIN.values())
+
+
 def test_both_engines_answer_the_populations_interface() -> None:
     from pporpe.online.fused_engine import FusedEngine
     from pporpe.online.torch_engine.engine import TorchEngine

@@ -36,6 +36,12 @@ Gymnasium's -v4 locomotion tasks (Hopper, Walker2d, HalfCheetah, Ant) are steppe
 way by :mod:`pporpe.envs.mujoco`: Gymnasium's classes with a step that computes the same
 numbers with less Python; ``mujoco_step="reference"`` or ``PPORPE_MUJOCO_STEP=reference``
 builds Gymnasium's own.
+
+The package: this module is its face (names, ``make_env``, the wrappers);
+:mod:`pporpe.envs.registration` names the aliases and pporpe's steps by entry-point string
+and imports nothing; :mod:`pporpe.envs.bullet` and :mod:`pporpe.envs.mujoco` hold the steps
+(imported by ``gymnasium.make`` when it builds one of their tasks, and never importing this
+face); :mod:`pporpe.envs.side_by_side` steps two implementations of a task side by side.
 """
 
 from __future__ import annotations
