@@ -51,9 +51,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import payload_command, write_json
 
 from pporpe.evaluation import load_evaluation
-from pporpe.experiments.grid import parse_spec
-from pporpe.experiments.reproduce import reproduce
-from pporpe.experiments.stats import (
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import parse_spec
+from pporpe.experiments.reports.stats import (
     average_probability_of_improvement_ci,
     bootstrap_ci,
     iqm,
@@ -169,7 +169,7 @@ METHODS = ("ppo", "rb", "rpe")
 
 
 def with_ci(values: list[float], statistic: Any) -> dict[str, float]:
-    """The statistic and its bootstrap 95% CI (pporpe.experiments.stats: scipy's BCa)."""
+    """The statistic and its bootstrap 95% CI (pporpe.experiments.reports.stats: scipy's BCa)."""
     return bootstrap_ci(values, statistic).as_dict()
 
 

@@ -39,7 +39,7 @@ K = 10 against 953 for ``separate`` (4.4x; 139 against 968 at K = 30, 7.0x); ``v
 costs 388 and gives other bits than a run alone (its batching rules pick other kernels,
 and it has no per-layer fallback); ``stacked-bmm`` is 12% cheaper than ``stacked`` and not
 bit for bit. The population uses ``stacked``: bit for bit a run alone for about a tenth
-more. Whole Hopper runs (the environment stepped by :mod:`pporpe.mujoco_step`): K = 10
+more. Whole Hopper runs (the environment stepped by :mod:`pporpe.envs.mujoco`): K = 10
 trains 2.77x the member-steps/s of a run alone (2.73-2.78 over the rounds), K = 30 3.55x.
 Of K = 10's 174 µs per member-step, 82 are the environments' own step (the ``envs``
 floor), 50 the rest of the rollout (some 130 small operations per step, 2K of them member

@@ -4,7 +4,7 @@ step, side by side over many steps (the long version of ``tests/test_bullet_step
 For each task, both environments from the same seeds take the same actions (held 1-60
 steps, outside the bounds too), with resets at the ends of episodes and at random times;
 every observation, reward, ``terminated``, ``truncated`` and reset observation is compared
-bit for bit (:func:`pporpe.bullet_step.side_by_side`). The JSON says, per task, whether
+bit for bit (:func:`pporpe.envs.side_by_side.side_by_side`). The JSON says, per task, whether
 it held, and how many resets, natural terminations and time-limit truncations it covered.
 
     python benchmarks/bullet_identity.py [--steps 30000] [--seed 0] [--out FILE]
@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.bullet_step import side_by_side
 from pporpe.envs import ALIASES
+from pporpe.envs.side_by_side import side_by_side
 
 
 def main() -> None:

@@ -252,7 +252,7 @@ def export_pporpe(args: argparse.Namespace) -> int:
 
 def pporpe_command(args: argparse.Namespace, seed: int, steps: int, out: Path) -> list[str]:
     """``pporpe train`` with the batch study's settings for the task (its spec's run)."""
-    from pporpe.experiments.grid import load_spec
+    from pporpe.experiments.grids.spec import load_spec
 
     spec = load_spec(HERE.parent / "experiments" / "batch-mujoco.toml")
     (run,) = [r for r in spec.runs if r.env == args.task and r.config.method == "ppo"
@@ -331,7 +331,7 @@ def task_row(runs: list[dict[str, Any]], task: str) -> dict[str, Any] | None:
     """One task's side by side: the last-100 means with CIs and P(pporpe > CleanRL) (where
     CleanRL ran: a task of the study without CleanRL's runs has pporpe's mean alone, beside
     CleanRL's published one on the docs page); None without pporpe's runs."""
-    from pporpe.experiments.stats import bootstrap_ci, probability_of_improvement_ci
+    from pporpe.experiments.reports.stats import bootstrap_ci, probability_of_improvement_ci
 
     groups = {i: [r for r in runs if r["task"] == task and r["implementation"] == i]
               for i in IMPLEMENTATIONS}  # fmt: skip

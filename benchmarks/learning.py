@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.experiments.grid import GridSpec, parse_spec
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import GridSpec, parse_spec
 
 THRESHOLD = {"pendulum": 950.0, "swingup": 800.0}
 

@@ -5,7 +5,7 @@ over many steps, and the µs of each step side by side (the long version of
 For each task, first the identity: both environments from the same seeds take the same
 actions (held 1-60 steps, outside the bounds too), with resets at the ends of episodes and
 at random times, and every observation, reward, flag, info and reset observation is
-compared bit for bit (:func:`pporpe.bullet_step.side_by_side`). Then the time of a step,
+compared bit for bit (:func:`pporpe.envs.side_by_side.side_by_side`). Then the time of a step,
 in alternating rounds (lean, reference, physics, lean, ...) so that the machine's noise
 hits them alike: each through :func:`pporpe.envs.make_env` and the batch learner's
 ``ReplayableEnv``, as a run steps it, on the same random actions (scaled by 0.3, so that
@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import write_json
 
-from pporpe.bullet_step import side_by_side
 from pporpe.envs import MUJOCO_LEAN_ENTRY_POINTS, ReplayableEnv, make_env
+from pporpe.envs.side_by_side import side_by_side
 
 STEPS = ("lean", "reference", "physics")
 """What is timed per task: pporpe's step, Gymnasium's, and the simulation calls alone."""

@@ -187,7 +187,7 @@ def run_reference(args: argparse.Namespace) -> int:
 
 def pporpe_spec(config: str, args: argparse.Namespace) -> Any:
     """The grid spec of pporpe's runs with ``config``'s settings for the seeds."""
-    from pporpe.experiments.grid import parse_spec
+    from pporpe.experiments.grids.spec import parse_spec
 
     settings = settings_for(config)
     method = settings.pop("method")
@@ -231,8 +231,8 @@ def run_pporpe(args: argparse.Namespace) -> int:
     population of up to ``--population`` members (:func:`pporpe_groups`; the run loop:
     checkpoints every minute, a rerun of the same command resumes), so that ``--config
     testbed+lr testbed+target ...`` costs far less than the configs one after another."""
-    from pporpe.experiments.backends import run_job
-    from pporpe.experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS
+    from pporpe.experiments.grids.backends import run_job
+    from pporpe.experiments.grids.reproduce import DEFAULT_CHECKPOINT_SECONDS
 
     failed = 0
     for configs, runs in pporpe_groups(args):
@@ -313,7 +313,7 @@ def side_by_side(
 ) -> dict[str, Any] | None:
     """pporpe with ``config`` beside the test bed with ``reference`` (default: the same
     settings) on one task: CIs and P(pporpe > test bed)."""
-    from pporpe.experiments.stats import bootstrap_ci, probability_of_improvement_ci
+    from pporpe.experiments.reports.stats import bootstrap_ci, probability_of_improvement_ci
 
     reference = config if reference is None else reference
     ours = select(records, implementation="pporpe", task=task, config=config)
@@ -361,7 +361,7 @@ def band_overlap(ours: list[dict[str, Any]], ref: list[dict[str, Any]]) -> dict[
 def path_rows(records: list[dict[str, Any]], task: str) -> list[dict[str, Any]]:
     """pporpe's configs on one task (the path from TESTBED to Table I): first-50 mean,
     final mean and IQM with CIs, seeds reaching the threshold, P(> testbed)."""
-    from pporpe.experiments.stats import bootstrap_ci, iqm, probability_of_improvement_ci
+    from pporpe.experiments.reports.stats import bootstrap_ci, iqm, probability_of_improvement_ci
 
     def scores_of(config: str) -> list[float]:
         return [r["score"] for r in select(records, implementation="pporpe", task=task,

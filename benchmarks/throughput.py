@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_json
 
 from pporpe.envs import env_spec_summary, make_env
-from pporpe.experiments.grid import load_spec
+from pporpe.experiments.grids.spec import load_spec
 from pporpe.online.config import OnlineConfig
 from pporpe.online.population import PopulationLearner
 

@@ -757,7 +757,7 @@ def throughput_page(root: Path) -> str:
         "## The environment step",
         "",
         "Microseconds per step of each Bullet task (random actions, resets included; "
-        "medians of the same alternating rounds): pporpe's step (`pporpe.bullet_step`, the "
+        "medians of the same alternating rounds): pporpe's step (`pporpe.envs.bullet`, the "
         "default of `pporpe.envs.make_env`, the same numbers bit for bit, "
         "[see getting started](../getting-started.md)), pybullet_envs_gymnasium's own "
         '(`bullet_step="reference"`), and PyBullet\'s `stepSimulation` alone, the floor '

@@ -22,9 +22,9 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from pporpe.experiments.preregistration import before_cells, load_preregistrations
-from pporpe.experiments.report_figures import CurvePanel, panel_figure
-from pporpe.experiments.results import Cell, load_results
+from pporpe.experiments.reports.plots import CurvePanel, panel_figure
+from pporpe.experiments.reports.preregistration import before_cells, load_preregistrations
+from pporpe.experiments.reports.results import Cell, load_results
 from pporpe.io import atomic_savefig, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,8 +27,8 @@ import torch
 from pporpe.batch import BatchConfig, BatchLearner, train_batch
 from pporpe.batch.kind import BatchPopulationTrainer
 from pporpe.batch.population import BatchPopulation, check_member
-from pporpe.experiments.grid import load_spec
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import load_spec
 from pporpe.runs.logger import EpisodeRecord, LoggedUpdate, read_records, read_updates
 from pporpe.runs.loop import run_queue
 

@@ -12,7 +12,9 @@ import pytest
 from repo_scripts import docs_generator
 from scipy import stats as sps
 
-from pporpe.experiments.aggregate import (
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import load_spec
+from pporpe.experiments.reports.batch.aggregate import (
     Aggregate,
     PooledImprovement,
     aggregate,
@@ -20,7 +22,7 @@ from pporpe.experiments.aggregate import (
     pooled_improvement,
     task_ranges,
 )
-from pporpe.experiments.batch_results import (
+from pporpe.experiments.reports.batch.results import (
     BatchCell,
     BatchRun,
     QuarterDiagnostics,
@@ -29,14 +31,12 @@ from pporpe.experiments.batch_results import (
     quarters_by_steps,
     step_mean_return,
 )
-from pporpe.experiments.batch_summary import BatchStatistics, Comparison, quarter_rows
-from pporpe.experiments.batch_tables import answer_markdown
-from pporpe.experiments.grid import load_spec
-from pporpe.experiments.report import write_report
-from pporpe.experiments.reproduce import reproduce
-from pporpe.experiments.stats import Estimate, iqm, stratified_iqm_ci
-from pporpe.experiments.verdicts import short_verdict
-from pporpe.experiments.verdicts import verdict as verdict_of
+from pporpe.experiments.reports.batch.summary import BatchStatistics, Comparison, quarter_rows
+from pporpe.experiments.reports.batch.tables import answer_markdown
+from pporpe.experiments.reports.report import write_report
+from pporpe.experiments.reports.stats import Estimate, iqm, stratified_iqm_ci
+from pporpe.experiments.reports.verdicts import short_verdict
+from pporpe.experiments.reports.verdicts import verdict as verdict_of
 from pporpe.runs.logger import EpisodeRecord, LoggedUpdate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,16 +15,16 @@ from pybullet_envs_gymnasium.gym_locomotion_envs import AntBulletEnv, HalfCheeta
 from tiny import same_run_either_way
 
 from pporpe.batch import BatchConfig
-from pporpe.bullet_step import (
+from pporpe.envs import ALIASES, make_env
+from pporpe.envs.bullet import (
     _AT_LIMIT,
     AntBatchedEnv,
     HalfCheetahBatchedEnv,
     InvertedPendulumBatchedEnv,
     mean_xy,
     numpy_mean,
-    side_by_side,
 )
-from pporpe.envs import ALIASES, make_env
+from pporpe.envs.side_by_side import side_by_side
 from pporpe.online.config import TrainConfig
 
 TASKS = list(ALIASES)

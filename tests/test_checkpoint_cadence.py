@@ -23,7 +23,7 @@ import pytest
 import torch
 from killable import CASES, queue, train_case
 
-from pporpe.experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS
+from pporpe.experiments.grids.reproduce import DEFAULT_CHECKPOINT_SECONDS
 from pporpe.runs import read_records
 from pporpe.runs.cadence import CHECKPOINT_WITHIN_S, CheckpointClock
 from pporpe.runs.folder import CHECKPOINT, load_checkpoint

@@ -84,7 +84,7 @@ def test_report_and_figures_leave_the_matplotlib_backend_alone(tmp_path: Path) -
     script = (
         "import sys, matplotlib\n"
         "matplotlib.use('svg')\n"
-        "import pporpe.experiments.report, pporpe.experiments.figures as F\n"
+        "import pporpe.experiments.reports.report, pporpe.experiments.reports.figures as F\n"
         f"F.draw_analytic_figures({str(tmp_path)!r})\n"
         "print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)\n"
     )

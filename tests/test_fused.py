@@ -18,9 +18,11 @@ from tiny import small_config as cfg
 
 from pporpe.nn.batched import NetLayout
 from pporpe.nn.policies import NormalHead, StudentTHead
-from pporpe.online import fused
 from pporpe.online.config import AUTHOR_CHOICES, BASELINE_CHOICES, TESTBED, OnlineConfig
 from pporpe.online.fused_engine import segment_ranges
+from pporpe.online.fused_engine.kernels.head import digamma, head_grad_closed, kl_closed
+from pporpe.online.fused_engine.kernels.inputs import HEADS, METHOD_CODES
+from pporpe.online.fused_engine.kernels.surrogates import surrogate_closed
 from pporpe.online.population import PopulationLearner
 from pporpe.surrogates import rpe_surrogate_advantage, surrogate_objective
 
@@ -32,14 +34,14 @@ LOW, HIGH = -np.ones(ACT), np.ones(ACT) * 2.0
 # ------------------------------------------------------------------------ closed forms
 def test_digamma_hand_worked_and_against_torch() -> None:
     euler = 0.5772156649015329
-    assert fused.digamma(1.0) == pytest.approx(-euler, abs=1e-13)
-    assert fused.digamma(0.5) == pytest.approx(-euler - 2.0 * math.log(2.0), abs=1e-13)
+    assert digamma(1.0) == pytest.approx(-euler, abs=1e-13)
+    assert digamma(0.5) == pytest.approx(-euler - 2.0 * math.log(2.0), abs=1e-13)
     # the recurrence psi(x + 1) = psi(x) + 1/x, across the switch to the series at 6
     for x in (1.3, 9.5, 9.999, 10.0, 17.2):
-        assert fused.digamma(x + 1.0) - fused.digamma(x) == pytest.approx(1.0 / x, abs=1e-13)
+        assert digamma(x + 1.0) - digamma(x) == pytest.approx(1.0 / x, abs=1e-13)
     xs = np.linspace(1.0, 60.0, 97)
     ref = torch.digamma(torch.tensor(xs, dtype=torch.float64)).numpy()
-    np.testing.assert_allclose([fused.digamma(float(x)) for x in xs], ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose([digamma(float(x)) for x in xs], ref, rtol=0, atol=1e-12)
 
 
 def _raw_u(head: str, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -56,7 +58,7 @@ def _raw_u(head: str, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("kind", ["student_t", "normal"])
 def test_head_log_density_and_gradient_match_autograd(kind: str) -> None:
     head = StudentTHead(ACT, min_scale=1e-3) if kind == "student_t" else NormalHead(ACT, 1e-3)
-    code = fused.HEADS[kind]
+    code = HEADS[kind]
     raw, u = _raw_u(kind, 40, seed=3)
     for i in range(raw.shape[0]):
         r64 = torch.tensor(raw[i], dtype=torch.float64, requires_grad=True)
@@ -64,7 +66,7 @@ def test_head_log_density_and_gradient_match_autograd(kind: str) -> None:
         ref = head.distribution(r64).log_prob(u64)  # torch.distributions, float64
         (grad_ref,) = torch.autograd.grad(ref, r64)
         grad = np.zeros(raw.shape[1])
-        logp = fused.head_grad_closed(raw[i], u[i], code, ACT, 1e-3, grad)
+        logp = head_grad_closed(raw[i], u[i], code, ACT, 1e-3, grad)
         assert logp == pytest.approx(float(ref), rel=1e-12, abs=1e-12)
         np.testing.assert_allclose(grad, grad_ref.numpy(), rtol=1e-10, atol=1e-12)
 
@@ -74,7 +76,7 @@ def test_student_t_gradient_hand_worked() -> None:
     raw = np.array([0.5, -0.2, 0.3, 0.1, 1.0], np.float32)
     u = raw[:ACT].copy()
     grad = np.zeros(5)
-    fused.head_grad_closed(raw, u, 0, ACT, 1e-3, grad)
+    head_grad_closed(raw, u, 0, ACT, 1e-3, grad)
     raw_s = raw[2:4].astype(np.float64)
     scale = np.log1p(np.exp(raw_s)) + 1e-3
     np.testing.assert_allclose(grad[:2], 0.0, atol=0)
@@ -88,9 +90,9 @@ def test_kl_matches_head(kind: str) -> None:
     raw_q, _ = _raw_u(kind, 20, seed=2)
     for p, q in zip(raw_p, raw_q):
         ref = head.kl(torch.tensor(p, dtype=torch.float64), torch.tensor(q, dtype=torch.float64))
-        ours = fused._kl(p, q, fused.HEADS[kind], ACT, 1e-3)
+        ours = kl_closed(p, q, HEADS[kind], ACT, 1e-3)
         assert ours == pytest.approx(float(ref), rel=1e-10, abs=1e-12)
-    assert fused._kl(raw_p[0], raw_p[0], fused.HEADS[kind], ACT, 1e-3) == 0.0
+    assert kl_closed(raw_p[0], raw_p[0], HEADS[kind], ACT, 1e-3) == 0.0
 
 
 SURROGATES = [
@@ -106,7 +108,7 @@ SURROGATES = [
 def test_surrogate_and_derivative_match_autograd(
     method: str, form: str, eps: float, beta: float, eta: float
 ) -> None:
-    code = fused.METHOD_CODES[(method, form)]
+    code = METHOD_CODES[(method, form)]
     # ratios on both sides of every threshold (avoiding the kinks themselves)
     rhos = np.concatenate([np.linspace(0.3, 2.0, 173), [1.0]])
     for sigma in (1.0, -1.0):
@@ -115,7 +117,7 @@ def test_surrogate_and_derivative_match_autograd(
         obj = surrogate_objective(method, rho, adv, eps, beta, eta, form)  # type: ignore[arg-type]
         (dobj,) = torch.autograd.grad(obj.sum(), rho)
         for i, x in enumerate(rhos):
-            o, d = fused.surrogate_closed(code, float(x), sigma, eps, beta, eta)
+            o, d = surrogate_closed(code, float(x), sigma, eps, beta, eta)
             assert o == pytest.approx(float(obj[i]), rel=1e-12, abs=1e-12)
             assert d == pytest.approx(float(dobj[i]), rel=1e-10, abs=1e-12)
 
@@ -125,15 +127,13 @@ def test_surrogate_derivative_identities() -> None:
     threshold; for RPE (derived) it is the surrogate advantage A~ of eq. (12)."""
     for code in range(4):
         for sigma in (1.0, -1.0):
-            assert fused.surrogate_closed(code, 1.0, sigma, 0.1, 0.5, 0.3)[1] == pytest.approx(
-                sigma
-            )
-    assert fused.surrogate_closed(0, 1.3, 1.0, 0.1, 0.5, 0.3)[1] == 0.0
-    assert fused.surrogate_closed(1, 0.7, -1.0, 0.1, 0.5, 0.3)[1] == pytest.approx(0.3)
+            assert surrogate_closed(code, 1.0, sigma, 0.1, 0.5, 0.3)[1] == pytest.approx(sigma)
+    assert surrogate_closed(0, 1.3, 1.0, 0.1, 0.5, 0.3)[1] == 0.0
+    assert surrogate_closed(1, 0.7, -1.0, 0.1, 0.5, 0.3)[1] == pytest.approx(0.3)
     rho = torch.tensor([0.7, 0.95, 1.1, 1.4], dtype=torch.float64)
     for sigma in (1.0, -1.0):
         ref = rpe_surrogate_advantage(rho, torch.full_like(rho, sigma), 0.1, 0.5)
-        ours = [fused.surrogate_closed(2, float(x), sigma, 0.1, 0.5, 0.3)[1] for x in rho]
+        ours = [surrogate_closed(2, float(x), sigma, 0.1, 0.5, 0.3)[1] for x in rho]
         np.testing.assert_allclose(ours, ref.numpy(), rtol=1e-12)
 
 

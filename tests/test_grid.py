@@ -17,10 +17,16 @@ import pytest
 
 from pporpe.batch import BatchConfig
 from pporpe.cli import main
-from pporpe.experiments.grid import load_spec, parse_spec, select_runs
-from pporpe.experiments.progress import RECENT_EPISODES, GridProgress, RunProgress, run_progress
-from pporpe.experiments.report import mean_ci, write_report
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.grids.progress import (
+    RECENT_EPISODES,
+    GridProgress,
+    RunProgress,
+    run_progress,
+)
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import load_spec, parse_spec, select_runs
+from pporpe.experiments.reports.report import write_report
+from pporpe.experiments.reports.stats import mean_ci
 from pporpe.online import AUTHOR_CHOICES, DEFAULT_CHOICES, TESTBED, OnlineConfig
 from pporpe.runs.folder import config_json, open_run_dir
 from pporpe.runs.kinds import kind_of

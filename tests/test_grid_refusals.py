@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from tiny import tiny_grid_toml
 
-from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.grids.spec import parse_spec
 
 SPEC = tiny_grid_toml(episodes=2, checkpoint_every=None)
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 from tiny import tiny_grid_toml
 
-from pporpe.experiments.grid import load_spec, select_runs
-from pporpe.experiments.merge import grid_status
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.grids.merge import grid_status
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import load_spec, select_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 

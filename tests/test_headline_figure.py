@@ -10,8 +10,8 @@ from pathlib import Path
 
 from repo_scripts import ROOT, docs_generator, load_script
 
-from pporpe.experiments.report_figures import CurvePanel, panel_figure
-from pporpe.experiments.results import load_results
+from pporpe.experiments.reports.plots import CurvePanel, panel_figure
+from pporpe.experiments.reports.results import load_results
 
 
 def test_a_panel_per_source_titled_with_its_seeds_and_length(tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from tiny import tiny_learner
 
 from pporpe.batch.config import BatchConfig
 from pporpe.cli import main
-from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.grids.spec import parse_spec
 from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.runs import load_policy, train
 
@@ -308,7 +308,7 @@ def test_other_subcommands_fail_in_one_line(
 def test_any_toml_text_parses_or_fails_naming_the_file(
     tmp_path_factory: pytest.TempPathFactory, text: str
 ) -> None:
-    from pporpe.experiments.grid import load_spec
+    from pporpe.experiments.grids.spec import load_spec
 
     path = tmp_path_factory.mktemp("toml") / "spec.toml"
     path.write_text(text, encoding="utf-8")
@@ -330,7 +330,7 @@ ODD = st.one_of(
 def test_population_settings_are_checked_before_any_work(
     tmp_path_factory: pytest.TempPathFactory, population: Any, seconds: Any, workers: Any
 ) -> None:
-    from pporpe.experiments.reproduce import reproduce
+    from pporpe.experiments.grids.reproduce import reproduce
 
     spec = parse_spec(GOOD_SPEC, "fuzz.toml")
     out = tmp_path_factory.mktemp("grid") / "out"

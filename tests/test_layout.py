@@ -1,10 +1,14 @@
-"""The layout of the online learner (``src/pporpe/online``): one learner, two engines.
+"""The layout of the package (``src/pporpe``): rooms that import one way.
 
-Every file says what it owns in its first line and stays under 600 lines; no file
-imports one that imports it back (TYPE_CHECKING and function-level imports included);
-both engines answer the population's interface; the old module paths re-export the same
-objects; the fused kernel's disk cache is keyed on all of its files; and the warm-up
-compiles every signature a population then calls.
+Every file says what it owns in its first line and stays under 600 lines, every function
+under 60; no file imports one that imports it back (TYPE_CHECKING and function-level
+imports included), anywhere in the package; the rooms' arrows point one way (the
+environments' families never import the face, the grids and the reports never import each
+other, the online and the batch report never import each other); the old module paths of
+the environments re-export the same objects with a DeprecationWarning. For the online
+learner: both engines answer the population's interface, the fused kernel's disk cache is
+keyed on all of its files, and the warm-up compiles every signature a population then
+calls.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import ast
 import importlib
 import inspect
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +28,10 @@ import pporpe
 from pporpe.online.engine import Engine
 from pporpe.online.population import PopulationLearner
 
-ONLINE = Path(pporpe.__file__).resolve().parent / "online"
-SRC = ONLINE.parent.parent
+PACKAGE = Path(pporpe.__file__).resolve().parent
+SRC = PACKAGE.parent
 MAX_LINES = 600
+MAX_FUNCTION_LINES = 60
 
 
 def _module_name(path: Path) -> str:
@@ -33,7 +39,7 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-FILES = {_module_name(p): p for p in sorted(ONLINE.rglob("*.py"))}
+FILES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
 
 @pytest.mark.parametrize("name", sorted(FILES))
@@ -44,8 +50,22 @@ def test_every_file_says_what_it_owns_and_is_short(name: str) -> None:
     assert len(text.splitlines()) <= MAX_LINES, name
 
 
+@pytest.mark.parametrize("name", sorted(FILES))
+def test_every_function_is_short(name: str) -> None:
+    """From ``def`` to its last line, docstring included (decorators not counted)."""
+    tree = ast.parse(FILES[name].read_text())
+    long = [
+        f"{node.name} ({node.end_lineno - node.lineno + 1} lines)"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno is not None
+        and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
+    ]
+    assert not long, f"{name}: {', '.join(long)}"
+
+
 def _imports(name: str, path: Path) -> set[str]:
-    """The modules of ``src/pporpe/online`` that ``name`` imports, anywhere in the file."""
+    """The modules of ``src/pporpe`` that ``name`` imports, anywhere in the file."""
     package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -60,24 +80,97 @@ def _imports(name: str, path: Path) -> set[str]:
     return {m for m in found if m in FILES and m != name}
 
 
+GRAPH = {name: _imports(name, path) for name, path in FILES.items()}
+
+
+def test_the_import_graph_sees_every_kind_of_import() -> None:
+    """Module-level, function-level and TYPE_CHECKING imports, relative and absolute, are
+    all edges (a cycle through any of them would go unseen otherwise)."""
+    assert "pporpe.envs" in GRAPH["pporpe.batch.vecenv"]  # module level, relative
+    assert "pporpe.runs.loop" in GRAPH["pporpe.experiments.grids.backends"]  # in a function
+    assert "pporpe.envs.registration" in GRAPH["pporpe.envs"]  # a submodule by name
+
+
 def test_no_file_imports_one_that_imports_it_back() -> None:
-    graph = {name: _imports(name, path) for name, path in FILES.items()}
     done: set[str] = set()
 
     def visit(name: str, path: list[str]) -> None:
         if name in path:
             raise AssertionError(" -> ".join([*path[path.index(name) :], name]))
         if name not in done:
-            for other in sorted(graph[name]):
+            for other in sorted(GRAPH[name]):
                 visit(other, [*path, name])
             done.add(name)
 
-    for name in sorted(graph):
+    for name in sorted(GRAPH):
         visit(name, [])
-    assert "pporpe.online.population" not in set().union(
-        *(graph[n] for n in graph if n.startswith(("pporpe.online.torch_engine",
-                                                   "pporpe.online.fused_engine")))
-    )  # fmt: skip
+
+
+def _reach(name: str) -> set[str]:
+    """Every module ``name`` imports, directly or through others."""
+    seen: set[str] = set()
+    todo = [name]
+    while todo:
+        for other in GRAPH[todo.pop()] - seen:
+            seen.add(other)
+            todo.append(other)
+    return seen
+
+
+def _room(prefix: str) -> list[str]:
+    return [n for n in FILES if n == prefix or n.startswith(prefix + ".")]
+
+
+ARROWS = [
+    # (a room, what none of its modules reaches, whether that module alone or its room)
+    ("pporpe.online.torch_engine", "pporpe.online.population", "alone"),
+    ("pporpe.online.fused_engine", "pporpe.online.population", "alone"),
+    ("pporpe.envs.bullet", "pporpe.envs", "alone"),  # a family never imports the face
+    ("pporpe.envs.mujoco", "pporpe.envs", "alone"),
+    ("pporpe.envs.registration", "pporpe", "room"),  # imports nothing of pporpe
+    ("pporpe.experiments.grids", "pporpe.experiments.reports", "room"),
+    ("pporpe.experiments.reports", "pporpe.experiments.grids", "room"),
+    ("pporpe.experiments.reports.online", "pporpe.experiments.reports.batch", "room"),
+    ("pporpe.experiments.reports.batch", "pporpe.experiments.reports.online", "room"),
+]
+
+
+@pytest.mark.parametrize(("room", "never", "scope"), ARROWS)
+def test_the_rooms_arrows_point_one_way(room: str, never: str, scope: str) -> None:
+    """No module of ``room`` imports ``never`` (``alone``: that module; ``room``: it or any
+    of its submodules), directly or through others."""
+    for name in _room(room):
+        inside = [never] if scope == "alone" else _room(never)
+        reached = _reach(name) & set(inside)
+        assert not reached, f"{name} -> {sorted(reached)}"
+
+
+def test_what_the_reports_share_imports_neither_report() -> None:
+    """The shared reporting modules reach neither the online nor the batch report; only
+    the face of ``pporpe report`` (``reports.report``) sends a grid to one of them."""
+    reports = "pporpe.experiments.reports"
+    either = set(_room(f"{reports}.online") + _room(f"{reports}.batch"))
+    shared = [n for n in _room(reports) if n not in either and n != f"{reports}.report"]
+    assert f"{reports}.stats" in shared and f"{reports}.verdicts" in shared
+    for name in shared:
+        reached = _reach(name) & either
+        assert not reached, f"{name} -> {sorted(reached)}"
+
+
+def test_every_learner_kind_of_the_package_is_found_by_name() -> None:
+    """A module that registers a learner kind when imported is in ``runs.kinds._BUILTIN``,
+    so that ``get_kind`` finds its kind before anything imported it (a run folder's
+    ``config.json`` read in a fresh process)."""
+    from pporpe.runs.kinds import _BUILTIN
+
+    registering = set()
+    for name, path in FILES.items():
+        for node in ast.parse(path.read_text()).body:
+            calls = [n for n in ast.walk(node) if isinstance(n, ast.Call)]
+            if any(getattr(c.func, "id", None) == "register_kind" for c in calls):
+                registering.add(name)
+    assert {"pporpe.online.kind", "pporpe.batch.kind"} <= registering  # the scan sees them
+    assert registering == set(_BUILTIN.values())
 
 
 def test_both_engines_answer_the_populations_interface() -> None:
@@ -92,25 +185,32 @@ def test_both_engines_answer_the_populations_interface() -> None:
             assert list(theirs) == list(inspect.signature(getattr(Engine, call)).parameters)
 
 
-OLD_PATHS = {
-    "pporpe.online.fused": "pporpe.online.fused_engine.kernels",
-    "pporpe.online.update": "pporpe.online.torch_engine.update",
-    "pporpe.online.optim": "pporpe.online.torch_engine.optim",
-    "pporpe.online.traces": "pporpe.online.torch_engine.traces",
-    "pporpe.online.tsoft": "pporpe.online.torch_engine.tsoft",
+ENV_OLD_PATHS = {
+    "pporpe.bullet_step": ("pporpe.envs.bullet", "pporpe.envs.side_by_side"),
+    "pporpe.mujoco_step": ("pporpe.envs.mujoco",),
 }
 
 
-@pytest.mark.parametrize("old", sorted(OLD_PATHS))
-def test_the_old_module_paths_re_export_the_same_objects(old: str) -> None:
-    module = importlib.import_module(old)
-    assert module.__all__
-    for name in module.__all__:
-        obj = getattr(module, name)
-        home = importlib.import_module(getattr(obj, "__module__", None) or OLD_PATHS[old])
-        assert home.__name__.startswith(OLD_PATHS[old]), (old, name)
-        if hasattr(obj, "__module__"):
-            assert getattr(home, obj.__name__) is obj, (old, name)
+@pytest.mark.parametrize("old", sorted(ENV_OLD_PATHS))
+def test_the_environments_old_paths_warn_and_re_export_the_same_objects(old: str) -> None:
+    if old == "pporpe.mujoco_step":
+        pytest.importorskip("mujoco")
+    homes = [importlib.import_module(h) for h in ENV_OLD_PATHS[old]]
+    sys.modules.pop(old, None)
+    with pytest.warns(DeprecationWarning, match=old.replace(".", r"\.")):
+        module = importlib.import_module(old)
+    for home in homes:
+        for name in home.__all__:
+            assert getattr(module, name) is getattr(home, name), (old, name)
+    assert set(module.__all__) == set().union(*(h.__all__ for h in homes))
+
+
+@pytest.mark.parametrize("old", ["fused", "optim", "traces", "tsoft", "update"])
+def test_the_online_learners_old_module_paths_are_gone(old: str) -> None:
+    """Deprecated for one release (CHANGELOG), then removed."""
+    assert f"pporpe.online.{old}" not in FILES
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module(f"pporpe.online.{old}")
 
 
 def test_the_fused_engines_old_names_are_there() -> None:

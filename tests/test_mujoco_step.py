@@ -18,14 +18,9 @@ pytest.importorskip("mujoco")
 from tiny import same_run_either_way
 
 from pporpe.batch import BatchConfig
-from pporpe.bullet_step import side_by_side
 from pporpe.envs import MUJOCO_LEAN_ENTRY_POINTS, make_env
-from pporpe.mujoco_step import (
-    HopperLeanEnv,
-    _clip10,
-    _inside,
-    _sum_of_squares,
-)
+from pporpe.envs.mujoco import HopperLeanEnv, _clip10, _inside, _sum_of_squares
+from pporpe.envs.side_by_side import side_by_side
 
 TASKS = list(MUJOCO_LEAN_ENTRY_POINTS)
 IDENTITY_STEPS = 4000

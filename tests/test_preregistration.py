@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from pporpe.experiments.preregistration import (
+from pporpe.experiments.reports.preregistration import (
     Preregistration,
     before_cells,
     load_preregistrations,
     pending_tasks,
     preregistration_lines,
 )
-from pporpe.experiments.results import Cell, load_results
+from pporpe.experiments.reports.results import Cell, load_results
 
 ROOT = Path(__file__).resolve().parent.parent
 FULL = ROOT / "results" / "paper-full"

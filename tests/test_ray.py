@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import ray  # noqa: F401  - part of the test install (make test installs the ray extra)
 
-from pporpe.experiments.grid import load_spec
-from pporpe.experiments.reproduce import reproduce
+from pporpe.experiments.grids.reproduce import reproduce
+from pporpe.experiments.grids.spec import load_spec
 from pporpe.runs.logger import read_records
 
 SPEC = """

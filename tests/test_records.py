@@ -15,7 +15,7 @@ from interrupt import Interrupted, at_episode
 from tiny import tiny_learner
 
 from pporpe.batch import BatchConfig
-from pporpe.experiments.results import diagnostic, record_value, update_mean
+from pporpe.experiments.reports.results import diagnostic, record_value, update_mean
 from pporpe.online.config import TrainConfig
 from pporpe.runs import EpisodeRecord, SurrogateDiagnostics, read_records, train
 from pporpe.runs.folder import CHECKPOINT, load_checkpoint, save_checkpoint

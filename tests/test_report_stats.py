@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pporpe.experiments.report import load_results, write_report
-from pporpe.experiments.stats import (
+from pporpe.experiments.reports.report import write_report
+from pporpe.experiments.reports.results import load_results
+from pporpe.experiments.reports.stats import (
     average_probability_of_improvement_ci,
     bootstrap_ci,
     iqm,
@@ -191,7 +192,7 @@ def test_the_compute_line_sums_what_the_finished_runs_record(tmp_path: Path) -> 
     """CPU hours of training and of the test episodes, summed over the
     finished runs whose done.json records CPU time; the others counted apart; no line
     when none records it (an older grid's report is unchanged)."""
-    from pporpe.experiments.results import compute_line
+    from pporpe.experiments.reports.results import compute_line
 
     runs = [{"key": f"t/ppo/seed{i}"} for i in range(4)]
     grid = {"runs": runs}
@@ -218,7 +219,7 @@ def test_a_row_of_one_seed_shows_its_value_without_an_interval() -> None:
     row of one seed (a method's, or a comparison where either method has one) gives the
     value alone; two seeds and rows without a seed count keep their interval, NaN stays
     n/a."""
-    from pporpe.experiments.tables import fmt_ci
+    from pporpe.experiments.reports.tables import fmt_ci
 
     one = {"seeds": 1, "boot_value": 806.6, "boot_low": 806.6, "boot_high": 806.6}
     assert fmt_ci(one, "boot") == "806.6 (1 seed, no CI)"

@@ -11,20 +11,20 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pporpe.experiments.report import load_results, write_report
-from pporpe.experiments.results import Cell, quarter_means
-from pporpe.experiments.stats import (
+from pporpe.experiments.reports.online.claims import claims_markdown
+from pporpe.experiments.reports.online.summary import improvement_rows, quarter_rows
+from pporpe.experiments.reports.report import write_report
+from pporpe.experiments.reports.results import Cell, load_results, quarter_means
+from pporpe.experiments.reports.stats import (
     mean_difference,
     mean_difference_ci,
     probability_of_improvement_ci,
 )
-from pporpe.experiments.summary import improvement_rows, quarter_rows
-from pporpe.experiments.tables import quarter_markdown
-from pporpe.experiments.verdicts import (
+from pporpe.experiments.reports.tables import quarter_markdown
+from pporpe.experiments.reports.verdicts import (
     EQUIVALENCE_BOUNDS,
     MIN_SEEDS,
     SETTLE_CAP,
-    claims_markdown,
     seeds_to_settle,
     settle_text,
     short_verdict,

@@ -18,7 +18,7 @@ from interrupt import Interrupted, at_episode
 from pporpe.batch import BatchConfig, load_batch_learner, train_batch
 from pporpe.cli import main
 from pporpe.config import config_from_dict
-from pporpe.experiments.grid import parse_spec
+from pporpe.experiments.grids.spec import parse_spec
 from pporpe.online.config import OnlineConfig, TrainConfig
 from pporpe.runs import (
     Episode,
@@ -512,7 +512,7 @@ def test_unfinished_version_0_1_batch_folder_resumes(tmp_path: Path) -> None:
 
 def test_grid_summary_keeps_the_runs_of_earlier_chunks(tmp_path: Path) -> None:
     """A grid run in chunks into one folder lists every chunk's runs in grid.json."""
-    from pporpe.experiments.reproduce import merged_grid_summary
+    from pporpe.experiments.grids.reproduce import merged_grid_summary
     from pporpe.io import atomic_write_json
 
     register_kind(CountKind())
@@ -532,7 +532,7 @@ def test_grid_summary_keeps_the_runs_of_earlier_chunks(tmp_path: Path) -> None:
 
 
 def test_a_chunk_or_a_cell_of_a_grid_is_selected_by_task_method_and_seed() -> None:
-    from pporpe.experiments.grid import select_runs
+    from pporpe.experiments.grids.spec import select_runs
 
     register_kind(CountKind())
     spec = parse_spec(

@@ -19,8 +19,8 @@ import torch
 from tiny import tiny_grid_toml
 
 import pporpe
-from pporpe.experiments.grid import load_spec
-from pporpe.experiments.planning import plan_jobs
+from pporpe.experiments.grids.planning import plan_jobs
+from pporpe.experiments.grids.spec import load_spec
 from pporpe.runs.folder import (
     CHECKPOINT,
     config_json,

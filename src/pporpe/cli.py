@@ -27,7 +27,7 @@ class _CommandInterrupted(KeyboardInterrupt):
 
 
 def _cmd_figures(args: argparse.Namespace) -> int:
-    from .experiments.figures import draw_analytic_figures
+    from .experiments.reports.figures import draw_analytic_figures
 
     for path in draw_analytic_figures(args.out, eps=args.eps, beta=args.beta, eta=args.eta):
         print(path)
@@ -202,7 +202,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .experiments.grid import load_spec, select_runs
+    from .experiments.grids.spec import load_spec, select_runs
     from .text import count
 
     spec = load_spec(args.spec)  # every run is validated before any starts
@@ -232,7 +232,11 @@ def _reproduce_until_interrupted(spec: Any, whole: Any, args: argparse.Namespace
     a checkpoint there (a second signal stops at once)."""
     from pathlib import Path
 
-    from .experiments.reproduce import DEFAULT_CHECKPOINT_SECONDS, DEFAULT_POPULATION, reproduce
+    from .experiments.grids.reproduce import (
+        DEFAULT_CHECKPOINT_SECONDS,
+        DEFAULT_POPULATION,
+        reproduce,
+    )
     from .runs.stopping import StopRequest, stop_on_signals
 
     every = args.checkpoint_seconds
@@ -258,7 +262,7 @@ def _reproduce_until_interrupted(spec: Any, whole: Any, args: argparse.Namespace
 
 
 def _report(out: str) -> None:
-    from .experiments.report import write_report
+    from .experiments.reports.report import write_report
 
     paths = write_report(out)
     print(paths[0].read_text())
@@ -361,7 +365,7 @@ def _add_evaluate(sub: Any) -> None:
 
 def _add_reproduce(sub: Any) -> None:
     """The ``pporpe reproduce`` subcommand."""
-    from .experiments.reproduce import DEFAULT_POPULATION
+    from .experiments.grids.reproduce import DEFAULT_POPULATION
 
     rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
     rp.add_argument("spec", help="grid spec, e.g. experiments/quick.toml or experiments/paper.toml")

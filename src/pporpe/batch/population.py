@@ -40,7 +40,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from gymnasium.vector import SyncVectorEnv
 from torch import Tensor
 
 from ..envs import env_spec_summary, make_env
@@ -55,11 +54,12 @@ from .learner import (
     scheduled_lr,
     update_stats,
 )
-from .loss import LossMetrics, NetOutputs, Objective, config_objective, loss_terms
+from .loss import LossMetrics, NetOutputs, config_objective, loss_terms
+from .member_envs import EnvStep, step_members
 from .model import ActorCritic
 from .normalize import StackedNormalizer
+from .population_update import LossGroup, Minibatches, StepSettings, grouped_objective
 from .stacked import FixedScale, StackedActorCritic, StackedAdam
-from .vecenv import step_same_step
 
 __all__ = ["SHARED_FIELDS", "BatchPopulation", "Member", "MemberReport", "check_member"]
 
@@ -111,67 +111,6 @@ class Member:
     generator: torch.Generator
     lr: float
     """Learning rate of its last update (what its optimizer's state says)."""
-
-
-@dataclass
-class _Minibatches:
-    """Per-member bookkeeping of one update's epochs."""
-
-    active: list[int]
-    """Members still taking steps (a target_kl stop removes one)."""
-    rows: dict[int, int]
-    """Minibatch steps taken, by member."""
-    samples: dict[int, int]
-    """Samples seen, by member."""
-    epochs: dict[int, int]
-    """Whole epochs run, by member."""
-    raw: dict[int, Tensor]
-    """The policy head's raw input of the minibatch where a member stopped early."""
-    last_raw: Tensor | None = None
-    """The policy head's raw input of the last minibatch (every member's)."""
-
-
-@dataclass(frozen=True)
-class _LossGroup:
-    """Members that share loss weights and value clipping (one :func:`loss_terms` call)."""
-
-    cfg: BatchConfig
-    """A member's config (for the weights, value clipping and advantage normalisation)."""
-    rows: Tensor | None
-    """The members, or None for every slot."""
-    objective: Objective
-    """The surrogate of every member of the group, on the group's rows."""
-
-
-def _grouped_objective(parts: list[tuple[Objective, Tensor]]) -> Objective:
-    """One objective over a group's rows from the objectives of its subgroups (``parts``:
-    each with its rows within the group)."""
-
-    def objective(ratio: Tensor, adv: Tensor) -> Tensor:
-        out = ratio.new_zeros(ratio.shape)
-        for fn, rows in parts:
-            out = out.index_put((rows,), fn(ratio[rows], adv[rows]))
-        return out
-
-    return objective
-
-
-@dataclass(frozen=True)
-class _StepSettings:
-    """What the minibatch steps of one update need of each member, gathered once."""
-
-    lr: dict[int, float]
-    """Learning rate, by member."""
-    adam_eps: dict[int, float]
-    """Adam's epsilon, by member."""
-    clip: Tensor
-    """``[K]`` max_grad_norm (1 where there is none)."""
-    no_clip: Tensor
-    """``[K]`` whether a member's gradient is not clipped (or the slot is free)."""
-    target_kl: dict[int, float]
-    """target_kl of the members that have one."""
-    loss_groups: dict[tuple[int, ...], list[_LossGroup]]
-    """Loss groups by set of active members (filled as they are needed)."""
 
 
 class BatchPopulation:
@@ -400,39 +339,13 @@ class BatchPopulation:
             torch.randn(noise.shape[1:], generator=self._member(k).generator, out=rows[k])
         return noise
 
-    def _step_envs(self, busy: list[int], action: np.ndarray, errors: dict[int, str]) -> _EnvStep:
-        """Step every busy member's vector environment with its actions (a
-        :class:`SyncVectorEnv` through :func:`step_same_step`); a member whose reward or
-        observation is not finite goes to ``errors``, its rows zero."""
-        step = _EnvStep.empty(self.capacity, self.raw_obs)
-        for k in busy:
-            envs = self._member(k).learner.envs
-            if isinstance(envs, SyncVectorEnv):
-                out = (step.raw_obs[k], step.reward[k], step.term[k], step.trunc[k])
-                step.final_obs[k] = step_same_step(envs, action[k], *out)
-            else:
-                raw_next, reward, term, trunc, info = envs.step(action[k])
-                step.raw_obs[k], step.reward[k], step.term[k], step.trunc[k] = (
-                    raw_next,
-                    reward,
-                    term,
-                    trunc,
-                )
-                ended = np.nonzero(np.asarray(term) | np.asarray(trunc))[0]
-                step.final_obs[k] = {int(i): info["final_obs"][i] for i in ended}
-        finite = np.isfinite(step.reward).all(1) & np.isfinite(step.raw_obs).all((1, 2))
-        for k in busy:
-            learner = self._member(k).learner
-            if not finite[k]:
-                errors[k] = f"non-finite reward or observation at step {learner.total_steps}"
-                step.raw_obs[k], step.reward[k], step.term[k], step.trunc[k] = 0, 0.0, False, False
-                continue
-            learner.total_steps += self.cfg.n_envs
-        step.trunc &= ~step.term
-        step.done[:] = step.term | step.trunc
-        return step
+    def _step_envs(self, busy: list[int], action: np.ndarray, errors: dict[int, str]) -> EnvStep:
+        """Step every busy member's vector environment with its actions
+        (:func:`.member_envs.step_members`)."""
+        learners = {k: self._member(k).learner for k in busy}
+        return step_members(learners, action, self.raw_obs, self.cfg.n_envs, errors)
 
-    def _end_episodes(self, k: int, t: int, step: _EnvStep) -> list[FinishedEpisode]:
+    def _end_episodes(self, k: int, t: int, step: EnvStep) -> list[FinishedEpisode]:
         """Member ``k``'s part of :meth:`BatchLearner._end_episodes`: V of the final
         observation of every truncated episode into the buffer, the episodes that ended."""
         term, trunc, done = step.term[k], step.trunc[k], step.done[k]
@@ -487,7 +400,7 @@ class BatchPopulation:
         cfg = self.cfg
         settings = self._step_settings(members)
         rollout = self._rollout_batch()
-        book = _Minibatches(list(members), dict.fromkeys(members, 0), dict.fromkeys(members, 0),
+        book = Minibatches(list(members), dict.fromkeys(members, 0), dict.fromkeys(members, 0),
                             dict.fromkeys(members, 0), {})  # fmt: skip
         pos = row = 0
         n, bs = cfg.rollout_size, cfg.batch_size
@@ -505,7 +418,7 @@ class BatchPopulation:
                 book.epochs[k] += 1
         return {k: self._member_stats(k, book) for k in members}
 
-    def _step_settings(self, members: list[int]) -> _StepSettings:
+    def _step_settings(self, members: list[int]) -> StepSettings:
         """What the minibatch steps of this update need of each member, gathered once (its
         learning rate under its schedule is recorded as the member's)."""
         cfgs = {k: self._member(k).learner.cfg for k in members}
@@ -513,7 +426,7 @@ class BatchPopulation:
         for k, lr in lrs.items():
             self._member(k).lr = lr
         limits = [cfgs[k].max_grad_norm if k in cfgs else None for k in range(self.capacity)]
-        return _StepSettings(
+        return StepSettings(
             lr=lrs,
             adam_eps={k: c.adam_eps for k, c in cfgs.items()},
             clip=torch.tensor([1.0 if v is None else v for v in limits], dtype=torch.float32),
@@ -545,7 +458,7 @@ class BatchPopulation:
         return torch.stack(perms)
 
     def _minibatch_step(
-        self, mb: Minibatch, book: _Minibatches, settings: _StepSettings, pos: int, row: int
+        self, mb: Minibatch, book: Minibatches, settings: StepSettings, pos: int, row: int
     ) -> None:
         """Loss, backward, per-member clipping and Adam step of one minibatch of every active
         member (a member past its target KL stops before its step, as a run alone)."""
@@ -576,7 +489,7 @@ class BatchPopulation:
             book.samples[k] += len(mb)
 
     def _losses(
-        self, out: NetOutputs, mb: Minibatch, members: list[int], settings: _StepSettings
+        self, out: NetOutputs, mb: Minibatch, members: list[int], settings: StepSettings
     ) -> tuple[Tensor, LossMetrics]:
         """Every member's loss ``[K]`` (zero for the others) and the metrics: one
         :func:`loss_terms` call per group of equal loss weights and value clipping, each with
@@ -605,7 +518,7 @@ class BatchPopulation:
             )
         return losses, LossMetrics(policy, value, ratio, adv, out.raw)
 
-    def _loss_groups(self, members: list[int]) -> list[_LossGroup]:
+    def _loss_groups(self, members: list[int]) -> list[LossGroup]:
         """``members`` grouped by loss weights and value clipping, each group's surrogate
         one function over the group's rows (per subgroup of equal surrogate settings)."""
         out = []
@@ -613,16 +526,16 @@ class BatchPopulation:
             group = members if rows is None else [int(k) for k in rows]
             subgroups = self._groups(group, _SURROGATE_FIELDS)
             if len(subgroups) == 1:
-                out.append(_LossGroup(cfg, rows, config_objective(subgroups[0][0])))
+                out.append(LossGroup(cfg, rows, config_objective(subgroups[0][0])))
                 continue
             local = {k: i for i, k in enumerate(group)}
             parts = [(config_objective(c), torch.tensor([local[int(k)] for k in r]))
                      for c, r in subgroups if r is not None]  # fmt: skip
-            out.append(_LossGroup(cfg, rows, _grouped_objective(parts)))
+            out.append(LossGroup(cfg, rows, grouped_objective(parts)))
         return out
 
     def _stop_past_target_kl(
-        self, m: LossMetrics, book: _Minibatches, settings: _StepSettings
+        self, m: LossMetrics, book: Minibatches, settings: StepSettings
     ) -> None:
         """Remove from ``book.active`` every member whose minibatch KL estimate exceeds
         1.5 x its target_kl (the Stable-Baselines3 rule of a run alone), keeping the raw
@@ -636,7 +549,7 @@ class BatchPopulation:
                 book.active.remove(k)
                 book.raw[k] = m.raw[k]
 
-    def _member_stats(self, k: int, book: _Minibatches) -> UpdateStats:
+    def _member_stats(self, k: int, book: Minibatches) -> UpdateStats:
         """Member ``k``'s :class:`UpdateStats` (the statistics of a run alone)."""
         learner = self._member(k).learner
         rows, samples = book.rows[k], book.samples[k]
@@ -656,28 +569,3 @@ class BatchPopulation:
         learner.updates += 1
         buf = self.buffer
         return update_stats(learner.cfg, record, buf.returns[:, cols], buf.values[:, cols])
-
-
-@dataclass
-class _EnvStep:
-    """One vector step of every member, stacked ``[K, N, ...]``."""
-
-    raw_obs: np.ndarray
-    reward: np.ndarray
-    term: np.ndarray
-    trunc: np.ndarray
-    done: np.ndarray
-    final_obs: list[dict[int, Any]]
-    """The final observation of every sub-environment whose episode ended, by member."""
-
-    @staticmethod
-    def empty(members: int, like_obs: np.ndarray) -> _EnvStep:
-        shape = like_obs.shape[:2]
-        return _EnvStep(
-            raw_obs=np.zeros_like(like_obs),
-            reward=np.zeros(shape),
-            term=np.zeros(shape, dtype=bool),
-            trunc=np.zeros(shape, dtype=bool),
-            done=np.zeros(shape, dtype=bool),
-            final_obs=[{} for _ in range(members)],
-        )

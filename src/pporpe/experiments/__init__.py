@@ -1,3 +1,16 @@
-"""The paper's experiments: grid specs (:mod:`.grid`), running them on a local process pool
-or a Ray cluster (:mod:`.reproduce`), the report (:mod:`.report`) and the analytic figures
-(:mod:`.figures`)."""
+"""The paper's experiments, in two rooms: running a grid (:mod:`.grids`) and reporting on it
+(:mod:`.reports`).
+
+* :mod:`.grids`: a grid's spec (methods x tasks x seeds, :mod:`.grids.spec`), its runs packed
+  into jobs (:mod:`.grids.planning`), run on a local process pool or a Ray cluster
+  (:mod:`.grids.backends`, :mod:`.grids.reproduce`: ``pporpe reproduce``), its progress
+  (:mod:`.grids.progress`) and the ``grid.json`` / ``status.json`` its chunks merge into
+  (:mod:`.grids.merge`).
+* :mod:`.reports`: ``pporpe report`` (:mod:`.reports.report`) and what it reads and writes:
+  the statistics, verdicts, tables and figures both reports share, and what only the online
+  report (:mod:`.reports.online`) or only the batch report (:mod:`.reports.batch`) computes;
+  the paper's analytic figures (:mod:`.reports.figures`, ``pporpe figures``).
+
+The grids never import the reports, nor the reports the grids: a report reads only the run
+folders and ``grid.json``.
+"""
