@@ -30,9 +30,9 @@ __all__ = [
     "relative_ratio_figure",
 ]
 
-METHOD_LABELS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
-METHOD_COLORS = {"ppo": "tab:blue", "rb": "tab:green", "rpe": "tab:red"}
-METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-"}  # dashed: identical curves stay visible
+METHOD_LABELS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE", "spo": "SPO"}
+METHOD_COLORS = {"ppo": "tab:blue", "rb": "tab:green", "rpe": "tab:red", "spo": "tab:purple"}
+METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-", "spo": "-."}  # identical curves stay visible
 
 
 def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
@@ -100,7 +100,7 @@ def negative_loss_figure(
     axes = fig.subplots(1, 2)
     for ax, sign in zip(axes, (1.0, -1.0), strict=True):
         adv = torch.full_like(rho, sign)
-        for method in S.METHODS:
+        for method in ("ppo", "rb", "rpe"):  # the paper's three (SPO is not in its figure)
             obj = S.surrogate_objective(method, rho, adv, eps=eps, beta=beta, eta=eta)
             label = METHOD_LABELS[method]
             if method == "rb":
