@@ -1,8 +1,9 @@
-"""Batch PPO (pporpe.batch): GAE, truncation bootstrapping, determinism, the three
+"""Batch PPO (pporpe.batch): GAE, truncation bootstrapping, determinism, the four
 surrogates, configuration checks, normalisation, run folders and exact resume."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from dataclasses import replace
@@ -27,6 +28,7 @@ from pporpe.batch import (
     zoo_config,
 )
 from pporpe.runs.logger import EpisodeRecord, read_records
+from pporpe.surrogates import METHODS
 
 # A tiny, fast configuration on the Bullet InvertedPendulum (about 10k raw steps/s).
 TINY = dict(
@@ -185,7 +187,7 @@ def test_truncation_bootstrap_gives_infinite_horizon_value(bootstrap: bool) -> N
 
 
 # ------------------------------------------------------------------------------------
-# The three surrogates change the update
+# The surrogates change the update
 # ------------------------------------------------------------------------------------
 def _updates_by_method(cfg: BatchConfig) -> dict[str, torch.Tensor]:
     torch.manual_seed(cfg.seed)
@@ -194,7 +196,7 @@ def _updates_by_method(cfg: BatchConfig) -> dict[str, torch.Tensor]:
     theta0 = learner.model.theta.clone()
     opt0 = learner.optimizer.state_dict()
     out = {}
-    for method in ("ppo", "rb", "rpe"):
+    for method in METHODS:
         with torch.no_grad():
             learner.model.theta.copy_(theta0)
         learner.optimizer.load_state_dict(opt0)
@@ -210,17 +212,18 @@ def _updates_by_method(cfg: BatchConfig) -> dict[str, torch.Tensor]:
 def test_each_surrogate_changes_the_update_on_the_same_batch() -> None:
     cfg = tiny(eps=0.05, lr=1e-2, n_epochs=4)
     thetas = _updates_by_method(cfg)
-    for a, b in [("ppo", "rb"), ("ppo", "rpe"), ("rb", "rpe")]:
+    assert list(thetas) == ["ppo", "rb", "rpe", "spo"]
+    for a, b in itertools.combinations(thetas, 2):
         assert (thetas[a] - thetas[b]).abs().max() > 1e-5, (a, b)
 
 
 def test_surrogates_agree_on_a_single_step_from_rho_one() -> None:
     # one epoch with one minibatch: the only gradient is taken at rho = 1, where every
-    # surrogate's gradient is A * grad log pi, so the three updates coincide
+    # surrogate's gradient is A * grad log pi, so the updates coincide
     cfg = tiny(n_epochs=1, batch_size=64, eps=0.05, lr=1e-2)
     thetas = _updates_by_method(cfg)
-    torch.testing.assert_close(thetas["ppo"], thetas["rb"])
-    torch.testing.assert_close(thetas["ppo"], thetas["rpe"])
+    for method in ("rb", "rpe", "spo"):
+        torch.testing.assert_close(thetas["ppo"], thetas[method])
 
 
 # ------------------------------------------------------------------------------------
@@ -265,6 +268,23 @@ def test_bad_config_raises_value_error_naming_the_field(field: str, value: Any) 
     with pytest.raises(ValueError, match=field) as info:
         tiny(**{field: value})
     assert repr(value) in str(info.value) or str(value) in str(info.value)
+
+
+def test_spo_takes_eps_alone_and_refuses_a_bad_one_as_the_others() -> None:
+    assert tiny(method="spo", eps=0.4, beta=0.8).method == "spo"  # beta is not SPO's
+    for method in METHODS:
+        with pytest.raises(ValueError, match=r"eps must be a number in the open interval \(0, 1\)"):
+            tiny(method=method, eps=1.0)
+
+
+def test_a_short_spo_run_writes_its_diagnostics(tmp_path: Path) -> None:
+    result = train_batch(tiny(method="spo", eval_episodes=0), tmp_path, progress=False)
+    assert json.loads((tmp_path / "config.json").read_text())["method"] == "spo"
+    assert result.updates == 4 and len(result.records) > 0
+    for r in result.records:
+        assert r.diagnostics is not None and 0.0 <= r.diagnostics.past_threshold <= 1.0
+        assert r.diagnostics.reg_amount >= 0.0
+    assert math.isfinite(result.last_stats["policy_loss"])
 
 
 def test_rpe_needs_a_threshold() -> None:

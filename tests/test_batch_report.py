@@ -200,6 +200,19 @@ def test_the_answer_groups_the_tasks_by_verdict_and_adds_the_pooled_one() -> Non
     assert short_verdict(verdict_of(0.3, 0.7, (10, 10))) == "cannot tell at 10 seeds"
 
 
+def test_the_answer_names_every_rival_of_the_grid() -> None:
+    """A fourth method is one more rival: its own lines and its name in the question."""
+    comparisons = tuple(
+        Comparison("score", "A", "rpe", rival, (10, 10), 0, Estimate(0.5, 0.2, 0.7), None)
+        for rival in ("ppo", "rb", "spo")
+    )
+    lines = answer_markdown(BatchStatistics((), comparisons, (), Aggregate((), ())))
+    assert lines[2] == "- **test score**, against SPO: cannot tell at 10 seeds on A."
+    assert "Does PPO-RPE beat PPO, PPO-RB and SPO in batch PPO?" in lines[3]
+    one = answer_markdown(BatchStatistics((), comparisons[2:], (), Aggregate((), ())))
+    assert "Does PPO-RPE beat SPO in batch PPO?" in one[1]
+
+
 def test_quarter_rows_average_the_seeds() -> None:
     q1 = QuarterDiagnostics((0.1, 0.2, 0.3, 0.4), (1.0,) * 4, (0.01, math.nan, 0.03, 0.04))
     q2 = QuarterDiagnostics((0.3, 0.4, 0.5, 0.6), (3.0,) * 4, (0.03, math.nan, 0.05, 0.06))
@@ -289,3 +302,41 @@ def test_the_docs_page_and_readme_rows_of_the_batch_grid(tiny_grid: Path) -> Non
                              f"{rows[-1][6]} ([the study](results/batch-mujoco/REPORT.md)).")
     assert gen.batch_sentence(rows[:1]).endswith("on pendulum ([the study]"
                                                  "(results/batch-mujoco/REPORT.md)).")  # fmt: skip
+
+
+SPO_SPEC = """
+name = "tinyspo"
+kind = "batch"
+methods = ["rpe", "spo"]
+seeds = 2
+eval_episodes = 1
+checkpoint_every = 100
+
+[learner]
+n_envs = 1
+n_steps = 64
+batch_size = 32
+n_epochs = 1
+layers = 1
+units = 8
+
+[[tasks]]
+env = "pendulum"
+steps = 256
+"""
+
+
+def test_a_batch_grid_with_spo_runs_and_reports_it_as_a_rival(tmp_path: Path) -> None:
+    (tmp_path / "spo.toml").write_text(SPO_SPEC)
+    spec = load_spec(tmp_path / "spo.toml")
+    assert sorted(r.method for r in spec.runs) == ["rpe", "rpe", "spo", "spo"]
+    out = tmp_path / "grid"
+    assert reproduce(spec, out, workers=1, progress=False).ok
+    write_report(out)
+    report = (out / "REPORT.md").read_text()
+    for part in ("Methods: PPO-RPE, SPO;", "against SPO: too few seeds on pendulum",
+                 "Does PPO-RPE beat SPO in batch PPO?", "| pendulum | SPO | 2 |"):  # fmt: skip
+        assert part in report, part
+    runs = (out / "runs.csv").read_text().splitlines()
+    assert sum(line.startswith("pendulum,spo,") for line in runs) == 2
+    assert (out / "fig_aggregate.png").stat().st_size > 0

@@ -63,6 +63,15 @@ def test_given_flags_reach_the_config_and_others_keep_its_defaults() -> None:
     assert batch.eps != OnlineConfig().eps  # each kind's own default
 
 
+def test_method_spo_reaches_both_learners_and_the_help_lists_it() -> None:
+    online = _online_config(parse("--method", "spo", "--eps", "0.2"))
+    assert isinstance(online, TrainConfig) and online.learner.method == "spo"
+    batch = _batch_config(parse("--learner", "batch", "--method", "spo"))
+    assert isinstance(batch, BatchConfig) and batch.method == "spo"
+    assert "--method {ppo,rb,rpe,spo}" in train_help()
+    assert "Simple Policy Optimization" in train_help()
+
+
 def test_the_testbed_preset_as_flags() -> None:
     """Every TESTBED setting can be given on the command line."""
     argv: list[str] = []

@@ -24,7 +24,7 @@ from pporpe.online.fused_engine.kernels.head import digamma, head_grad_closed, k
 from pporpe.online.fused_engine.kernels.inputs import HEADS, METHOD_CODES
 from pporpe.online.fused_engine.kernels.surrogates import surrogate_closed
 from pporpe.online.population import PopulationLearner
-from pporpe.surrogates import rpe_surrogate_advantage, surrogate_objective
+from pporpe.surrogates import rpe_surrogate_advantage, spo_surrogate_advantage, surrogate_objective
 
 torch.set_num_threads(1)
 OBS, ACT = 3, 2
@@ -101,6 +101,8 @@ SURROGATES = [
     ("rpe", "derived", 0.1, 0.5, 0.3),
     ("rpe", "derived", 0.3, 0.2, 0.3),
     ("rpe", "printed", 0.1, 0.5, 0.3),
+    ("spo", "derived", 0.2, 0.5, 0.3),
+    ("spo", "derived", 0.05, 0.5, 0.3),
 ]
 
 
@@ -124,8 +126,10 @@ def test_surrogate_and_derivative_match_autograd(
 
 def test_surrogate_derivative_identities() -> None:
     """d obj/d rho is A at rho = 1 for every method, and 0 (PPO) / -eta sigma (RB) past the
-    threshold; for RPE (derived) it is the surrogate advantage A~ of eq. (12)."""
-    for code in range(4):
+    threshold; for RPE (derived) it is the surrogate advantage A~ of eq. (12), for SPO its
+    own, which vanishes at its maximiser 1 + sigma eps."""
+    assert sorted(set(METHOD_CODES.values())) == list(range(5))
+    for code in range(5):
         for sigma in (1.0, -1.0):
             assert surrogate_closed(code, 1.0, sigma, 0.1, 0.5, 0.3)[1] == pytest.approx(sigma)
     assert surrogate_closed(0, 1.3, 1.0, 0.1, 0.5, 0.3)[1] == 0.0
@@ -135,6 +139,11 @@ def test_surrogate_derivative_identities() -> None:
         ref = rpe_surrogate_advantage(rho, torch.full_like(rho, sigma), 0.1, 0.5)
         ours = [surrogate_closed(2, float(x), sigma, 0.1, 0.5, 0.3)[1] for x in rho]
         np.testing.assert_allclose(ours, ref.numpy(), rtol=1e-12)
+        ref = spo_surrogate_advantage(rho, torch.full_like(rho, sigma), 0.2)
+        ours = [surrogate_closed(4, float(x), sigma, 0.2, 0.5, 0.3)[1] for x in rho]
+        np.testing.assert_allclose(ours, ref.numpy(), rtol=1e-12)
+        at_max = surrogate_closed(4, 1.0 + sigma * 0.2, sigma, 0.2, 0.5, 0.3)[1]
+        assert at_max == pytest.approx(0.0, abs=1e-12)
 
 
 # ------------------------------------------------------------------------ the engines
@@ -148,6 +157,7 @@ MIXED = [
     cfg(method="ppo", policy_gradient="weighted_score", time_limit="terminal", tau=1.0,
         lambdas=(0.5, 0.9), kappa=1.0, amsgrad_decay=0.0),
     cfg(layer_norm_affine=True, opt_betas=(0.0, 0.99), critic_signal="actor", lr=1e-3),
+    cfg(method="spo", eps=0.05, lr=3e-3),
 ]  # fmt: skip
 OTHER_SHAPES = [
     [cfg(policy="normal", layer_norm=False, activation="relu", min_scale=1e-8)] * 2,

@@ -193,7 +193,7 @@ def test_a_mutated_task_parses_or_names_the_task(field: str, value: Any) -> None
 
 # --- property-based: CLI arguments ------------------------------------------------
 OPTIONS = {
-    "--method": st.sampled_from(["ppo", "rb", "rpe", "trpo", ""]),
+    "--method": st.sampled_from(["ppo", "rb", "rpe", "spo", "trpo", ""]),
     "--eps": st.sampled_from(["0.1", "0.5", "1.5", "-1", "nan", "x"]),
     "--beta": st.sampled_from(["0.5", "0.95", "2", "inf"]),
     "--eta": st.sampled_from(["0.3", "-0.1", "1e9"]),

@@ -1,9 +1,10 @@
-"""The online learner (Algorithm 1) for one run: step order, the three surrogates, signals,
+"""The online learner (Algorithm 1) for one run: step order, the surrogates, signals,
 reliability. (Members of a population: tests/test_population.py.)"""
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import Any
 
@@ -15,7 +16,7 @@ from tiny import baseline_config
 from pporpe.nn.mlp import FlatMLP, flat_views, mlp
 from pporpe.online import OnlineLearner, StepStats
 from pporpe.online.config import OnlineConfig, TrainConfig
-from pporpe.surrogates import surrogate_objective
+from pporpe.surrogates import METHODS, surrogate_objective
 
 # pporpe 0.2's learner choices pinned: these hand-worked cases are written for them; the
 # author's choices (the defaults) are tested one by one in test_fidelity_choices.py.
@@ -65,18 +66,18 @@ def test_first_ratio_is_one_then_ratio_measures_one_update() -> None:
     assert torch.all((later - 1.0).abs() > 1e-6), later  # one update between sampling and loss
 
 
-def test_three_methods_make_different_updates_from_same_transitions() -> None:
+def test_the_methods_make_different_updates_from_same_transitions() -> None:
     trans = transitions(30)
     obs0 = np.zeros(3, np.float32)
     thetas = {}
-    for method in ("ppo", "rb", "rpe"):
+    for method in METHODS:
         # a large lr pushes ratios past the thresholds, where the surrogates differ
         learner = make(method, lr=3e-2)
         run(learner, trans, obs0)
         thetas[method] = learner.theta.detach().clone()
-    assert not torch.allclose(thetas["ppo"], thetas["rb"])
-    assert not torch.allclose(thetas["ppo"], thetas["rpe"])
-    assert not torch.allclose(thetas["rb"], thetas["rpe"])
+    assert list(thetas) == ["ppo", "rb", "rpe", "spo"]
+    for a, b in itertools.combinations(METHODS, 2):
+        assert not torch.allclose(thetas[a], thetas[b]), (a, b)
 
 
 def test_same_seed_same_numbers() -> None:

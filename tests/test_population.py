@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import scipy.stats
@@ -80,9 +82,10 @@ def test_layout_matches_mlp_module() -> None:
 
 
 # ------------------------------------------------------------------------------- (b)
+@pytest.mark.parametrize("method", ["rpe", "spo"])
 @pytest.mark.parametrize("engine", ENGINES)
-def test_member_equals_reference_online_learner(engine: str) -> None:
-    member = cfg(lr=1e-3)
+def test_member_equals_reference_online_learner(engine: str, method: str) -> None:
+    member = cfg(lr=1e-3, method=method)
     others = [cfg(method="ppo", lr=3e-3, kappa=0.0), cfg(method="rb", nu=float("inf"))]
     torch.manual_seed(5)
     ref = OnlineLearner(OBS, LOW, HIGH, member)
@@ -127,13 +130,13 @@ def test_member_equals_reference_online_learner(engine: str) -> None:
 
 # ------------------------------------------------------------------------------- (c)
 def test_methods_differ_and_ratio_departs_from_one() -> None:
-    configs = [cfg(method=m, lr=3e-2) for m in ("ppo", "rb", "rpe")]
-    p = pop(configs, [0, 0, 0])
+    configs = [cfg(method=m, lr=3e-2) for m in ("ppo", "rb", "rpe", "spo")]
+    p = pop(configs, [0, 0, 0, 0])
     stats, _ = run_pop(p, data(30), np.zeros(OBS, np.float32))
-    th = [p.member_theta(k) for k in range(3)]
-    for i, j in ((0, 1), (0, 2), (1, 2)):
-        assert not torch.allclose(th[i], th[j])
-    assert torch.allclose(stats[0].ratio, torch.ones(3), atol=1e-6)
+    th = [p.member_theta(k) for k in range(4)]
+    for i, j in itertools.combinations(range(4), 2):
+        assert not torch.allclose(th[i], th[j]), (i, j)
+    assert torch.allclose(stats[0].ratio, torch.ones(4), atol=1e-6)
     later = torch.stack([s.ratio for s in stats[1:]])
     assert torch.all((later - 1.0).abs() > 1e-6)
 

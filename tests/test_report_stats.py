@@ -236,3 +236,38 @@ def test_a_row_of_one_seed_shows_its_value_without_an_interval() -> None:
     assert fmt_ci({"seeds": 1, "past_value": 0.0006, "past_low": 0.0006,
                    "past_high": 0.0006}, "past", 2, 100.0) == "0.06 (1 seed, no CI)"  # fmt: skip
     assert fmt_ci({**one, "boot_value": float("nan")}, "boot") == "n/a"
+
+
+def test_a_fourth_method_gets_its_rows_rival_column_and_legend(tmp_path: Path) -> None:
+    """SPO's runs (here a copy of PPO's) appear as a method of their own: rows, a rival
+    of PPO-RPE, and a fourth surrogate in the legend; a grid without it keeps the text."""
+    import shutil
+
+    write_fixture(tmp_path / "three")
+    write_report(tmp_path / "three")
+    legend = (
+        "How much the three surrogates can differ: the share of a run's updates whose ratio "
+        "rho was past the threshold (where PPO's clip, PPO-RB's rollback or PPO-RPE's "
+        "stronger pull act)"
+    )
+    assert legend in (tmp_path / "three" / "summary.md").read_text()
+    root = tmp_path / "four"
+    write_fixture(root)
+    grid = json.loads((root / "grid.json").read_text())
+    for run in [r for r in grid["runs"] if r["method"] == "ppo"]:
+        key = run["key"].replace("/ppo/", "/spo/")
+        shutil.copytree(root / run["key"], root / key)
+        grid["runs"].append({**run, "key": key, "method": "spo"})
+    (root / "grid.json").write_text(json.dumps(grid))
+    write_report(root)
+    summary = (root / "summary.md").read_text()
+    assert "| pendulum | SPO | 4.00 [4.00, 4.00] | 1.00 [1.00, 1.00] |" in summary
+    spo_row = next(line for line in summary.splitlines() if "| vs SPO |" in line)
+    ppo_row = next(line for line in summary.splitlines() if "| vs PPO |" in line)
+    assert spo_row.replace("SPO", "PPO") == ppo_row  # the same numbers: the same runs
+    assert (
+        "How much the four surrogates can differ: the share of a run's updates whose ratio "
+        "rho was past the threshold (where PPO's clip, PPO-RB's rollback, PPO-RPE's "
+        "stronger pull or SPO's reversed gradient act)"
+    ) in summary
+    assert "| final performance | pendulum | SPO | 0.62 [" in (root / "REPORT.md").read_text()

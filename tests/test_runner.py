@@ -148,13 +148,16 @@ def test_non_finite_reward_stops_with_episode_and_step_and_keeps_checkpoint(
 # ------------------------------------------------------------------------------------
 # The CLI
 # ------------------------------------------------------------------------------------
-def test_cli_train_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("method", ["rb", "spo"])
+def test_cli_train_then_evaluate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], method: str
+) -> None:
     run = tmp_path / "run"
     code = main(
         [
             "train",
             "--method",
-            "rb",
+            method,
             "--env",
             "pendulum",
             "--seed",
@@ -170,7 +173,7 @@ def test_cli_train_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[s
     )
     assert code == 0
     assert "trained 3 episodes" in capsys.readouterr().out
-    assert json.loads((run / "config.json").read_text())["learner"]["method"] == "rb"
+    assert json.loads((run / "config.json").read_text())["learner"]["method"] == method
     assert main(["evaluate", str(run), "--episodes", "3"]) == 0
     out = capsys.readouterr().out
     ev = json.loads((run / "evaluation.json").read_text())
@@ -183,6 +186,7 @@ def test_cli_train_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[s
     [
         (["--eps", "1.5"], "eps"),
         (["--method", "rpe", "--beta", "0.99"], "beta"),
+        (["--method", "spo", "--eps", "0"], "eps must be a number in the open interval (0, 1)"),
         (["--env", "NoSuchEnv-v9"], "pendulum"),  # lists the aliases
     ],
 )
@@ -207,7 +211,10 @@ def test_cli_evaluate_rejects_non_run_folder(
     assert "not a run folder" in capsys.readouterr().err
 
 
-def test_cli_train_batch_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("method", ["rpe", "spo"])
+def test_cli_train_batch_then_evaluate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], method: str
+) -> None:
     run = tmp_path / "batch"
     code = main(
         [
@@ -215,7 +222,7 @@ def test_cli_train_batch_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFix
             "--learner",
             "batch",
             "--method",
-            "rpe",
+            method,
             "--env",
             "pendulum",
             "--steps",
@@ -238,7 +245,7 @@ def test_cli_train_batch_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFix
     assert code == 0
     assert "trained 256 steps (2 updates" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
-    assert saved["kind"] == "batch" and saved["method"] == "rpe" and saved["n_steps"] == 128
+    assert saved["kind"] == "batch" and saved["method"] == method and saved["n_steps"] == 128
     assert main(["evaluate", str(run), "--episodes", "2"]) == 0
     ev = json.loads((run / "evaluation.json").read_text())
     assert ev["episodes"] == 2 and len(ev["returns"]) == 2

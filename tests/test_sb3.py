@@ -89,6 +89,29 @@ def test_rpe_policy_loss_matches_a_float64_reference() -> None:
     assert float(metrics["policy_gradient_loss"]) == pytest.approx(float(expected), rel=1e-4)
 
 
+def test_spo_trains_and_its_policy_loss_matches_a_float64_reference(reference: Any) -> None:
+    """SPO's loss, -mean(rho A - |A|/(2 eps) (rho - 1)^2), written here in float64."""
+    model = trained(PPO, surrogate="spo", rpe_beta=0.99)  # rpe_beta is not SPO's
+    p = params(model)
+    assert not torch.equal(p, params(reference))
+    assert not torch.equal(p, params(trained(PPO, surrogate="rpe")))
+    logged = model.logger.name_to_value
+    assert logged["train/regularization"] > 0.0  # (rho - 1)^2 / (2 eps) > 0 off rho = 1
+    assert 0.0 <= logged["train/past_threshold_fraction"] <= 1.0
+    data = next(model.rollout_buffer.get(64))
+    eps = SMALL["clip_range"]
+    _, metrics = model._minibatch(data, eps, None)
+    with torch.no_grad():
+        _, logp, _ = model.policy.evaluate_actions(data.observations, data.actions)
+    adv = data.advantages.double()
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    rho = torch.exp(logp.double() - data.old_log_prob.double())
+    expected = -(rho * adv - adv.abs() / (2 * eps) * (rho - 1) ** 2).mean()
+    # a mean of terms of size ~1 that nearly cancel: float32's rounding, absolute
+    assert float(metrics["policy_gradient_loss"]) == pytest.approx(float(expected), abs=1e-6)
+    assert abs(float(expected)) > 1e-5  # and the mean is not zero
+
+
 def test_save_and_load_keep_the_surrogate(tmp_path: Path) -> None:
     model = trained(PPO, surrogate="rpe", rpe_beta=0.3)
     model.save(tmp_path / "m")
@@ -106,13 +129,18 @@ def test_save_and_load_keep_the_surrogate(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"surrogate": "clip"}, r"`surrogate` must be one of 'ppo', 'rb', 'rpe'; got 'clip'"),
+        (
+            {"surrogate": "clip"},
+            r"`surrogate` must be one of 'ppo', 'rb', 'rpe', 'spo'; got 'clip'",
+        ),
         ({"surrogate": "rb", "eta": -0.1}, r"`eta` must be a finite number >= 0"),
         ({"eta": float("inf")}, r"`eta`"),
         ({"rpe_beta": 1.5}, r"`rpe_beta` must be a number in \[0, 1\]; got 1.5"),
         ({"clip_range": 1.2}, r"`clip_range` \(the paper's eps\) must be in \(0, 1\)"),
         ({"clip_range": "0.2"}, r"`clip_range` \(the paper's eps\) must be in \(0, 1\)"),
         ({"surrogate": "rpe", "rpe_beta": 0.95, "clip_range": 0.1}, r"rpe_beta must be < 0.909"),
+        ({"surrogate": "spo", "clip_range": 0.0}, r"`clip_range` \(the paper's eps\) must be in"),
+        ({"surrogate": "spo", "clip_range": 1.0}, r"`clip_range` \(the paper's eps\) must be in"),
     ],
 )
 def test_bad_arguments_are_refused_before_any_work(kwargs: dict[str, Any], match: str) -> None:

@@ -402,7 +402,9 @@ def test_invalid_parameters_raise_naming_the_parameter(kwargs: dict, name: str) 
 
 
 def test_invalid_method_and_form_raise() -> None:
-    with pytest.raises(ValueError, match=r"method must be one of 'ppo', 'rb', 'rpe'; got 'trpo'"):
+    with pytest.raises(
+        ValueError, match=r"method must be one of 'ppo', 'rb', 'rpe', 'spo'; got 'trpo'"
+    ):
         S.surrogate_objective("trpo", torch.ones(1), torch.ones(1))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="form"):
         S.rpe_surrogate_advantage(torch.ones(1), torch.ones(1), form="typo")  # type: ignore[arg-type]
@@ -421,3 +423,166 @@ def test_printed_form_singularity_raises() -> None:
     beta = 2 / (2 + 3 * eps)
     with pytest.raises(ValueError, match="printed"):
         S.rpe_surrogate_advantage(torch.ones(1), torch.ones(1), eps, beta, form="printed")
+
+
+# ------------------------------------------------------------------------------------
+# SPO (Xie et al., ICML 2025): rho*A - |A|/(2 eps)*(rho - 1)^2
+# ------------------------------------------------------------------------------------
+SPO_EPS = [0.05, 0.1, 0.2, 0.3, 0.5, 0.9]
+
+
+def ref_objective_spo(rho: float, a: float, eps: float) -> float:
+    """SPO's per-sample objective, written from its paper with plain floats."""
+    return rho * a - abs(a) / (2.0 * eps) * (rho - 1.0) ** 2
+
+
+def ref_atilde_spo(rho: float, a: float, eps: float) -> float:
+    """Its derivative in rho, by hand: A - 2*|A|/(2 eps)*(rho - 1)."""
+    return a - abs(a) * (rho - 1.0) / eps
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_spo_hand_worked(dtype: torch.dtype) -> None:
+    eps = 0.2
+    rho = torch.tensor([1.0, 1.1, 1.2, 1.5, 0.8, 0.5, 1.3], dtype=dtype)
+    adv = torch.tensor([2.0, 1.0, 1.0, 1.0, -1.0, -2.0, 0.0], dtype=dtype)
+    # 1.1 - 0.01/0.4; 1.2 - 0.04/0.4 (the maximum, 1 + eps/2); 1.5 - 0.25/0.4;
+    # -0.8 - 0.04/0.4; -1.0 - 2*0.25/0.4; A = 0 gives 0
+    expected = torch.tensor([2.0, 1.075, 1.1, 0.875, -0.9, -2.25, 0.0], dtype=dtype)
+    obj = S.surrogate_objective("spo", rho, adv, eps=eps)
+    assert obj.dtype == dtype
+    torch.testing.assert_close(obj, expected)
+    # A - |A|(rho - 1)/eps: 2; 1 - 0.5; 1 - 1; 1 - 2.5; -1 + 1; -2 + 5; 0
+    grad = S.spo_surrogate_advantage(rho, adv, eps=eps)
+    torch.testing.assert_close(
+        grad, torch.tensor([2.0, 0.5, 0.0, -1.5, 0.0, 3.0, 0.0], dtype=dtype)
+    )
+    torch.testing.assert_close(S.surrogate_loss("spo", rho, adv, eps=eps), -expected.mean())
+    # where PPO clips (rho = 1.5, A = 1: 1.2), SPO pulls further back (0.875)
+    assert S.surrogate_objective("ppo", rho, adv, eps=eps)[3].item() == pytest.approx(1.2)
+
+
+@pytest.mark.parametrize("eps", SPO_EPS)
+def test_spo_against_float64_reference(eps: float) -> None:
+    g = torch.Generator().manual_seed(7)
+    rho = torch.exp(torch.randn(300, generator=g, dtype=torch.float64))
+    adv = 3.0 * torch.randn(300, generator=g, dtype=torch.float64)
+    pairs = list(zip(rho.tolist(), adv.tolist()))
+    exp_obj = t64([ref_objective_spo(r, a, eps) for r, a in pairs])
+    exp_at = t64([ref_atilde_spo(r, a, eps) for r, a in pairs])
+    torch.testing.assert_close(S.surrogate_objective("spo", rho, adv, eps), exp_obj)
+    torch.testing.assert_close(S.spo_surrogate_advantage(rho, adv, eps), exp_at)
+    # float32 agrees with the float64 reference to float32's resolution
+    out32 = S.surrogate_objective("spo", rho.float(), adv.float(), eps)
+    assert out32.dtype == torch.float32
+    torch.testing.assert_close(out32.double(), exp_obj, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("eps", SPO_EPS)
+def test_spo_per_sample_maximiser_is_one_plus_sigma_eps(eps: float) -> None:
+    """Over a fine grid of rho, each sample's objective peaks at rho* = 1 + sign(A)*eps,
+    where it is A + |A|*eps/2; autograd's derivative vanishes there and only there."""
+    rho = torch.linspace(0.0, 3.0, 300001, dtype=torch.float64)
+    for a in (2.5, 1.0, 0.3, -0.3, -1.0, -4.0):
+        obj = S.surrogate_objective("spo", rho, torch.full_like(rho, a), eps)
+        best = rho[int(torch.argmax(obj))].item()
+        assert best == pytest.approx(1.0 + math.copysign(eps, a), abs=1e-5)
+        assert obj.max().item() == pytest.approx(a + abs(a) * eps / 2, rel=1e-9)
+    at = torch.tensor([1.0 + eps, 1.0 - eps], dtype=torch.float64, requires_grad=True)
+    adv = t64([1.7, -0.4])
+    (grad,) = torch.autograd.grad(S.surrogate_objective("spo", at, adv, eps).sum(), at)
+    torch.testing.assert_close(grad, torch.zeros(2, dtype=torch.float64), rtol=0, atol=1e-12)
+    # the objective is concave in rho: its second derivative is -|A|/eps
+    x = torch.tensor([0.7, 1.4], dtype=torch.float64, requires_grad=True)
+    (g1,) = torch.autograd.grad(
+        S.surrogate_objective("spo", x, adv, eps).sum(), x, create_graph=True
+    )
+    (g2,) = torch.autograd.grad(g1.sum(), x)
+    torch.testing.assert_close(g2, -adv.abs() / eps)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("eps", SPO_EPS)
+def test_spo_gradient_is_its_surrogate_advantage_and_ppos_at_ratio_one(
+    eps: float, dtype: torch.dtype
+) -> None:
+    g = torch.Generator().manual_seed(8)
+    rho = torch.exp(0.5 * torch.randn(200, generator=g, dtype=dtype)).requires_grad_(True)
+    adv = torch.randn(200, generator=g, dtype=dtype)
+    (grad,) = torch.autograd.grad(S.surrogate_objective("spo", rho, adv, eps).sum(), rho)
+    torch.testing.assert_close(grad, S.spo_surrogate_advantage(rho.detach(), adv, eps))
+    ones = torch.ones(200, dtype=dtype, requires_grad=True)
+    grads = {}
+    for method in ("spo", "ppo"):
+        (grads[method],) = torch.autograd.grad(
+            S.surrogate_objective(method, ones, adv, eps).sum(), ones
+        )
+    torch.testing.assert_close(grads["spo"], adv, rtol=0, atol=0)
+    torch.testing.assert_close(grads["ppo"], adv, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("eps", SPO_EPS)
+def test_spo_surrogate_advantage_turns_at_one_plus_sigma_eps(eps: float) -> None:
+    adv = t64([1.0, -1.0])
+    inside = S.spo_surrogate_advantage(t64([1 + eps - 1e-3, 1 - eps + 1e-3]), adv, eps)
+    beyond = S.spo_surrogate_advantage(t64([1 + eps + 1e-3, 1 - eps - 1e-3]), adv, eps)
+    assert torch.all(torch.sign(inside) == torch.sign(adv))
+    assert torch.all(torch.sign(beyond) == -torch.sign(adv))
+
+
+@pytest.mark.parametrize("eps", [0.1, 0.2, 0.3])
+def test_spo_is_ppo_rpe_with_beta_zero_and_differs_from_it_with_beta(eps: float) -> None:
+    """At beta = 0 PPO-RPE's gain is C = |A|/(2 eps) on both sides (eq. (15)) and its
+    penalty is on rho itself: SPO's objective. With beta > 0 the penalty is on rho_beta
+    with a gain that differs with the sign of A, and the two part."""
+    g = torch.Generator().manual_seed(9)
+    rho = torch.exp(0.4 * torch.randn(100, generator=g, dtype=torch.float64))
+    adv = torch.randn(100, generator=g, dtype=torch.float64)
+    spo = S.surrogate_objective("spo", rho, adv, eps)
+    torch.testing.assert_close(spo, S.surrogate_objective("rpe", rho, adv, eps, beta=0.0))
+    torch.testing.assert_close(S.rpe_gain(adv, eps, 0.0), adv.abs() / (2 * eps))
+    rpe = S.surrogate_objective("rpe", rho, adv, eps, beta=0.5)
+    assert float((spo - rpe).abs().max()) > 1e-3
+    # PPO-RPE's thresholds on rho move (asymmetric); SPO's maximiser stays at 1 -/+ eps
+    low, high = S.ratio_thresholds(eps, 0.5)
+    assert high - 1 > eps and 1 - low > eps
+
+
+def test_spo_regularization_amount_and_past_threshold() -> None:
+    eps = 0.2
+    rho = t64([1.0, 1.1, 1.25, 1.5, 0.9, 0.7, 1.3, 1.5])
+    adv = t64([1.0, 1.0, 1.0, 1.0, -1.0, -2.0, -1.0, 0.0])
+    reg = S.regularization_amount("spo", rho, adv, eps=eps)
+    # (rho - 1)^2 / (2 eps), 0 where A = 0
+    torch.testing.assert_close(
+        reg.amount, t64([0.0, 0.025, 0.15625, 0.625, 0.025, 0.225, 0.225, 0.0])
+    )
+    # past: sigma*(rho - 1) >= eps, the ratio at or past its maximiser 1 + sigma eps;
+    # rho = 1.3 with A < 0 is on the other side (no past), A = 0 is never past
+    assert reg.past_threshold.tolist() == [False, False, True, True, False, True, False, False]
+    assert reg.fraction_past_threshold.item() == pytest.approx(3 / 8)
+
+
+@pytest.mark.parametrize("method", S.METHODS)
+@pytest.mark.parametrize("eps", [0.0, 1.0, -0.1, 1.5, math.nan, math.inf])
+def test_bad_eps_refused_alike_by_every_method(method: str, eps: float) -> None:
+    expected = f"eps must be a number in the open interval (0, 1); got eps={eps!r}"
+    with pytest.raises(ValueError) as info:
+        S.surrogate_objective(method, torch.ones(2), torch.ones(2), eps=eps)  # type: ignore[arg-type]
+    assert str(info.value) == expected
+    with pytest.raises(ValueError) as info:
+        S.check_surrogate_params(method, eps=eps)
+    assert str(info.value) == expected
+    if method == "spo":
+        with pytest.raises(ValueError, match=re.escape(expected)):
+            S.spo_surrogate_advantage(torch.ones(2), torch.ones(2), eps=eps)
+
+
+def test_spo_takes_no_beta_or_eta() -> None:
+    """beta and eta are not SPO's: a beta that PPO-RPE refuses and any eta leave it as is."""
+    rho, adv = t64([0.5, 1.4]), t64([-1.0, 2.0])
+    S.check_surrogate_params("spo", eps=0.1, beta=0.95)
+    torch.testing.assert_close(
+        S.surrogate_objective("spo", rho, adv, eps=0.1, beta=0.95, eta=5.0, rpe_form="printed"),
+        S.surrogate_objective("spo", rho, adv, eps=0.1),
+    )

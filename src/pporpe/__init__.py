@@ -1,6 +1,6 @@
 """pporpe: Proximal Policy Optimization with Relative Pearson Divergence.
 
-The surrogate objectives of PPO (clip), PPO-RB (rollback) and PPO-RPE as pure tensor
+The surrogate objectives of PPO (clip), PPO-RB (rollback), PPO-RPE and SPO as pure tensor
 functions (:mod:`pporpe.surrogates`), the paper's online actor-critic learner
 (:mod:`pporpe.online`), a batch PPO trainer (:mod:`pporpe.batch`), the one run loop both
 train through (:mod:`pporpe.runs`), and the paper's experiments
@@ -27,6 +27,7 @@ from .surrogates import (
     rpe_divergence,
     rpe_gain,
     rpe_surrogate_advantage,
+    spo_surrogate_advantage,
     surrogate_loss,
     surrogate_objective,
 )
@@ -80,6 +81,7 @@ __all__ = [
     "rpe_divergence",
     "rpe_gain",
     "rpe_surrogate_advantage",
+    "spo_surrogate_advantage",
     "surrogate_loss",
     "surrogate_objective",
     "train",

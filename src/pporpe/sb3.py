@@ -1,4 +1,4 @@
-"""PPO-RPE and PPO-RB inside Stable-Baselines3: ``from pporpe.sb3 import PPO``.
+"""PPO-RPE, PPO-RB and SPO inside Stable-Baselines3: ``from pporpe.sb3 import PPO``.
 
 :class:`PPO` is ``stable_baselines3.PPO`` with three more arguments, so that an SB3 (or
 rl-zoo3) script switches surrogate with one word::
@@ -10,12 +10,13 @@ rl-zoo3) script switches surrogate with one word::
     model.save("ppo_rpe_pendulum")
     model = PPO.load("ppo_rpe_pendulum")
 
-* ``surrogate``: ``"ppo"`` (clip, SB3's own loss), ``"rb"`` (rollback) or ``"rpe"``
-  (relative Pearson divergence), computed by :func:`pporpe.surrogates.surrogate_objective`;
+* ``surrogate``: ``"ppo"`` (clip, SB3's own loss), ``"rb"`` (rollback), ``"rpe"``
+  (relative Pearson divergence) or ``"spo"`` (Simple Policy Optimization, Xie et al. 2025),
+  computed by :func:`pporpe.surrogates.surrogate_objective`;
 * ``eta``: PPO-RB's rollback slope (eq. (5) of arXiv 2010.03290), used by ``"rb"``;
 * ``rpe_beta``: PPO-RPE's mixture ratio beta (eq. (8)), used by ``"rpe"``.
 
-SB3's ``clip_range`` is the paper's eps for all three (a float or a schedule; a schedule
+SB3's ``clip_range`` is the paper's eps for all four (a float or a schedule; a schedule
 that reaches 0, like rl-zoo3's ``lin_0.2`` at the last update, is floored at 1e-8). Every
 other argument, the rollout collection, the value loss, advantage normalisation, gradient
 clipping, ``target_kl`` early stopping, ``save``/``load`` and the logger are SB3's. With
@@ -83,11 +84,11 @@ def _check_args(surrogate: Any, eta: Any, rpe_beta: Any, clip_range: Any) -> Non
 
 
 class PPO(_SB3PPO):
-    """``stable_baselines3.PPO`` whose policy loss is PPO's, PPO-RB's or PPO-RPE's.
+    """``stable_baselines3.PPO`` whose policy loss is PPO's, PPO-RB's, PPO-RPE's or SPO's.
 
     Args:
         policy, env: as for ``stable_baselines3.PPO``.
-        surrogate: ``"ppo"`` (default, SB3's clipped loss), ``"rb"`` or ``"rpe"``.
+        surrogate: ``"ppo"`` (default, SB3's clipped loss), ``"rb"``, ``"rpe"`` or ``"spo"``.
         eta: PPO-RB's rollback slope, a finite number >= 0 (default 0.3; ``"rb"`` only).
         rpe_beta: PPO-RPE's mixture ratio beta in [0, 1] with
             ``rpe_beta * (1 + clip_range) < 1`` (default 0.5; ``"rpe"`` only).

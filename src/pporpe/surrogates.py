@@ -1,4 +1,4 @@
-r"""Surrogate objectives of PPO, PPO-RB and PPO-RPE as pure tensor functions.
+r"""Surrogate objectives of PPO, PPO-RB, PPO-RPE and SPO as pure tensor functions.
 
 Every function here works on tensors of any batch shape, in float32 or float64,
 does no reduction unless it says so, never calls ``.item()`` and never touches
@@ -18,6 +18,10 @@ parentheses is the equation's name, listed with all others in ``docs/glossary.md
 * eq. (15) (``mag_rpe``), Sec. III-D: threshold-based gain C
 * eq. (16) (``grad_rpe_thre``), Sec. III-D, and Algorithm 1: A~ with that gain
   substituted, as printed (see ``docs/erratum.md``)
+
+SPO, the fourth surrogate, is not in that paper: it is the objective
+rho*A - |A|/(2 eps)*(rho-1)^2 of Z. Xie et al., "Simple Policy Optimization" (ICML 2025,
+arXiv:2401.16025), whose maximiser over rho is 1 + sigma*eps (``docs/spo.md``).
 
 Conventions shared by all functions:
 
@@ -54,12 +58,14 @@ __all__ = [
     "rpe_divergence",
     "rpe_gain",
     "rpe_surrogate_advantage",
+    "spo_surrogate_advantage",
     "surrogate_loss",
     "surrogate_objective",
 ]
 
-Method = Literal["ppo", "rb", "rpe"]
-"""Name of a surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback), ``"rpe"`` (relative Pearson)."""
+Method = Literal["ppo", "rb", "rpe", "spo"]
+"""Name of a surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback), ``"rpe"`` (relative Pearson),
+``"spo"`` (Simple Policy Optimization's quadratic penalty)."""
 
 METHODS: tuple[Method, ...] = get_args(Method)
 
@@ -109,8 +115,8 @@ def check_surrogate_params(
     """Validate the parameters of a surrogate, raising ``ValueError`` naming the bad one.
 
     Only the parameters that ``method`` uses are checked beyond ``eps``: ``beta`` for
-    ``"rpe"``, ``eta`` for ``"rb"``. Learners call this in their config's
-    ``__post_init__`` so that bad input fails before any work starts.
+    ``"rpe"``, ``eta`` for ``"rb"`` (``"ppo"`` and ``"spo"`` take eps alone). Learners call
+    this in their config's ``__post_init__`` so that bad input fails before any work starts.
     """
     _check_method(method)
     _check_eps(eps)
@@ -253,6 +259,28 @@ def rpe_surrogate_advantage(
 
 
 # ----------------------------------------------------------------------------------------
+# SPO: surrogate advantage
+# ----------------------------------------------------------------------------------------
+def spo_surrogate_advantage(ratio: Tensor, adv: Tensor, eps: float = 0.1) -> Tensor:
+    r"""Surrogate advantage of SPO: the derivative in rho of its objective (Xie et al. 2025).
+
+    .. math:: \tilde A^{SPO} = \frac{\partial}{\partial\rho}
+              \Big[\rho A - \frac{|A|}{2\epsilon}(\rho - 1)^2\Big]
+              = A - \frac{|A|}{\epsilon}(\rho - 1)
+
+    It equals A at rho = 1 (as PPO's does), vanishes at rho = 1 + sigma*eps, the maximiser of
+    each sample's objective, and has the opposite sign of A beyond it. Unlike PPO-RPE's gain
+    C (eq. (15)), the penalty's weight |A|/(2 eps) is the same on both sides of rho = 1,
+    so SPO's thresholds 1 -/+ eps are symmetric on rho itself; PPO-RPE at beta = 0 (gain
+    |A|/(2 eps), penalty on rho) is SPO. The result is linear in ``ratio``; no gradient
+    flows into ``adv``.
+    """
+    _check_eps(eps)
+    adv = adv.detach()
+    return adv - adv.abs() * (ratio - 1.0) / eps
+
+
+# ----------------------------------------------------------------------------------------
 # Objectives
 # ----------------------------------------------------------------------------------------
 def _ppo_ratio(ratio: Tensor, adv: Tensor, eps: float, eta: float) -> Tensor:
@@ -288,9 +316,14 @@ def surrogate_objective(
       :math:`\rho A - C(1-\beta+\beta\rho)(\rho_\beta-1)^2` with C of eq. (15)
       (``mag_rpe``) held constant; the subtracted term is rho times the regulariser
       Omega^RPE of eq. (10) (``reg_rpe``).
+    * ``"spo"`` (Simple Policy Optimization, Xie et al., ICML 2025, arXiv:2401.16025):
+      :math:`\rho A - \frac{|A|}{2\epsilon}(\rho - 1)^2`, a quadratic penalty on rho
+      itself whose per-sample maximiser is :math:`\rho^* = 1 + \sigma\epsilon`
+      (``beta``, ``eta`` and ``rpe_form`` are ignored).
 
     The derivative with respect to ``ratio`` is the weight of the paper's policy
-    gradient: for ``"rpe"`` exactly :func:`rpe_surrogate_advantage` (derived form). With
+    gradient: for ``"rpe"`` exactly :func:`rpe_surrogate_advantage` (derived form), for
+    ``"spo"`` :func:`spo_surrogate_advantage`. With
     ``rpe_form="printed"`` the RPE objective is replaced by the integral-free surrogate
     ``rho * stopgrad(A~_printed)``, whose ratio-gradient is the printed A~ at each sample.
 
@@ -302,6 +335,8 @@ def surrogate_objective(
         return _ppo_ratio(ratio, adv, eps, 0.0) * adv
     if method == "rb":
         return _ppo_ratio(ratio, adv, eps, eta) * adv
+    if method == "spo":
+        return ratio * adv - adv.abs() / (2.0 * eps) * (ratio - 1.0) ** 2
     if rpe_form == "printed":
         weight = rpe_surrogate_advantage(ratio.detach(), adv, eps, beta, form="printed")
         return ratio * weight
@@ -336,7 +371,9 @@ class Regularization(NamedTuple):
     amount: Tensor
     """sigma * (rho - rho_dagger), with rho_dagger = objective / A; 0 where A = 0."""
     past_threshold: Tensor
-    """Boolean: sigma*(rho - 1) >= eps (PPO, PPO-RB) or sigma*(rho_beta - 1) >= eps (PPO-RPE)."""
+    """Boolean: sigma*(rho - 1) >= eps (PPO, PPO-RB; for SPO: rho at or past its maximiser
+    1 + sigma*eps, where its gradient turns against A) or sigma*(rho_beta - 1) >= eps (PPO-RPE);
+    False where A = 0."""
 
     @property
     def fraction_past_threshold(self) -> Tensor:
@@ -361,6 +398,7 @@ def regularization_amount(
 
     * PPO / PPO-RB: :math:`\sigma(\rho - \rho^{PPO})`, zero inside the threshold.
     * PPO-RPE: :math:`(C/|A|)(1-\beta+\beta\rho)(\rho_\beta-1)^2 \ge 0`, zero only at rho = 1.
+    * SPO: :math:`(\rho - 1)^2 / (2\epsilon) \ge 0`, zero only at rho = 1.
 
     Where A = 0, rho_dagger is undefined and the amount is reported as 0.
     """
@@ -374,6 +412,9 @@ def regularization_amount(
         rho_ppo = _ppo_ratio(ratio, adv, eps, 0.0 if method == "ppo" else eta)
         amount = sigma * (ratio - rho_ppo)
         past = sigma * (ratio - 1.0) >= eps
+    elif method == "spo":
+        amount = torch.where(nonzero, (ratio - 1.0) ** 2 / (2.0 * eps), 0.0)
+        past = (sigma * (ratio - 1.0) >= eps) & nonzero
     else:
         mix = 1.0 - beta + beta * ratio
         dev = ratio / mix - 1.0

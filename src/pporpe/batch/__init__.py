@@ -1,5 +1,5 @@
-r"""Standard batch PPO (vector-env rollouts, GAE, minibatch epochs) with the PPO, PPO-RB and
-PPO-RPE surrogates: one word apart (``BatchConfig(method="rb")``).
+r"""Standard batch PPO (vector-env rollouts, GAE, minibatch epochs) with the PPO, PPO-RB,
+PPO-RPE and SPO surrogates: one word apart (``BatchConfig(method="rb")``).
 
 * :mod:`.config`     :class:`BatchConfig`, :data:`ZOO_DEFAULTS`, :func:`zoo_config`;
 * :mod:`.normalize`  observation and reward normalisation;

@@ -54,7 +54,8 @@ class BatchConfig:
     env: str = "pendulum"
     """Task: an alias (pendulum, swingup, halfcheetah, ant) or a Gymnasium id with Box actions."""
     method: Method = "ppo"
-    """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback) or ``"rpe"`` (relative Pearson)."""
+    """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback), ``"rpe"`` (relative Pearson) or
+    ``"spo"`` (Simple Policy Optimization, eps only)."""
     seed: int = 0
     """Seed of the networks, the sampling and the environments (sub-env i gets seed + i), >= 0."""
     total_steps: int = 1_000_000

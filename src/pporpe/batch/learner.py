@@ -5,8 +5,8 @@ minibatch updates rather than online. This module gives them that trainer, shari
 surrogates (:func:`pporpe.surrogates.surrogate_objective`), the policy heads
 (:func:`pporpe.nn.make_head`, :class:`~pporpe.nn.ActionMap`) and the network
 builder (:func:`pporpe.nn.mlp`) with the paper's online learner. Switching PPO to
-PPO-RB or PPO-RPE is one word: ``BatchConfig(method="rb")`` or ``method="rpe"``; the
-training loop is the same function for all three (the surrogate is one call).
+PPO-RB, PPO-RPE or SPO is one word: ``BatchConfig(method="rb")``, ``method="rpe"`` or
+``method="spo"``; the training loop is the same function for all (the surrogate is one call).
 
 One update (``k``-th of ``n_updates``)::
 

@@ -4,7 +4,7 @@
               - c_H\\,\\mathrm{mean}(H[\\pi(\\cdot|s)])
 
 with the per-sample objective rho * A^dagger of the configured surrogate
-(:func:`pporpe.surrogates.surrogate_objective`: PPO, PPO-RB or PPO-RPE), the squared value
+(:func:`pporpe.surrogates.surrogate_objective`: PPO, PPO-RB, PPO-RPE or SPO), the squared value
 error optionally clipped as in PPO2, and an optional entropy bonus.
 
 :func:`minibatch_loss` evaluates the networks and calls :func:`loss_terms`, which reduces

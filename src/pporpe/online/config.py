@@ -191,7 +191,8 @@ class OnlineConfig:
     """
 
     method: Method = "rpe"
-    """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback) or ``"rpe"`` (relative Pearson)."""
+    """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback), ``"rpe"`` (relative Pearson) or
+    ``"spo"`` (Simple Policy Optimization, eps only)."""
     eps: float = 0.1
     """Threshold parameter epsilon, in (0, 1)."""
     beta: float = 0.5

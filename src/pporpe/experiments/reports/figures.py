@@ -30,9 +30,9 @@ __all__ = [
     "relative_ratio_figure",
 ]
 
-METHOD_LABELS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE"}
-METHOD_COLORS = {"ppo": "tab:blue", "rb": "tab:green", "rpe": "tab:red"}
-METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-"}  # dashed: identical curves stay visible
+METHOD_LABELS = {"ppo": "PPO", "rb": "PPO-RB", "rpe": "PPO-RPE", "spo": "SPO"}
+METHOD_COLORS = {"ppo": "tab:blue", "rb": "tab:green", "rpe": "tab:red", "spo": "tab:purple"}
+METHOD_STYLES = {"ppo": "-", "rb": "--", "rpe": "-", "spo": "-."}  # identical curves stay visible
 
 
 def relative_ratio_figure(beta: float = 0.5, n: int = 101) -> Figure:
@@ -92,7 +92,8 @@ def negative_loss_figure(
     """The paper's Fig. 2 (``img_loss``): the objective rho * A^dagger against rho, A = +-1.
 
     PPO and PPO-RB have symmetric thresholds 1 -/+ eps on rho; PPO-RPE has its vertices at
-    the asymmetric thresholds of :func:`pporpe.surrogates.ratio_thresholds`.
+    the asymmetric thresholds of :func:`pporpe.surrogates.ratio_thresholds`. SPO, not in the
+    paper, is drawn beside them: its parabola peaks at 1 + sign(A) eps.
     """
     rho = torch.linspace(0.0, rho_max, 801, dtype=torch.float64)
     low, high = S.ratio_thresholds(eps, beta)
@@ -100,7 +101,7 @@ def negative_loss_figure(
     axes = fig.subplots(1, 2)
     for ax, sign in zip(axes, (1.0, -1.0), strict=True):
         adv = torch.full_like(rho, sign)
-        for method in S.METHODS:
+        for method in S.METHODS:  # the paper's three, then SPO beside them
             obj = S.surrogate_objective(method, rho, adv, eps=eps, beta=beta, eta=eta)
             label = METHOD_LABELS[method]
             if method == "rb":

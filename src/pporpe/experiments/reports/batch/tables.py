@@ -76,8 +76,9 @@ def answer_markdown(stats: BatchStatistics) -> list[str]:
     """The report's answer in words: per claim and rival, the verdict on each task (tasks
     with the same verdict together) and pooled over the tasks, read off the tables below."""
     lines = []
+    rivals = list(dict.fromkeys(c.rival for c in stats.comparisons))
     for metric in METRICS:
-        for rival in dict.fromkeys(c.rival for c in stats.comparisons):
+        for rival in rivals:
             per_task = [c for c in stats.comparisons if c.metric == metric.key and c.rival == rival]
             if not per_task:
                 continue
@@ -92,8 +93,10 @@ def answer_markdown(stats: BatchStatistics) -> list[str]:
                              f"{short_verdict(pooled[0].verdict)}")  # fmt: skip
             lines.append(f"- **{metric.name}**, against {_label(rival)}: {'; '.join(parts)}.")
     if lines:
+        names = [_label(r) for r in rivals]
+        them = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
         lines.append(
-            "\nDoes PPO-RPE beat PPO and PPO-RB in batch PPO? Each line reads the 95% CI of "
+            f"\nDoes PPO-RPE beat {them} in batch PPO? Each line reads the 95% CI of "
             "P(PPO-RPE > rival) on every task and pooled over the tasks (the tables below, "
             "with the rules under them); the test score is the headline claim, the last 100 "
             "training episodes CleanRL's metric, the mean training return the sample "

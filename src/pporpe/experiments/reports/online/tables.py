@@ -67,11 +67,15 @@ def _surrogate_lines(stats: Statistics) -> list[str]:
             f"| {r['task']} | {r['method']} | {fmt_ci(r, 'past', 2, 100.0)} | "
             f"{fmt_ci(r, 'ratio_dev', 2, 100.0)} |"
         )
+    acts = ["PPO's clip", "PPO-RB's rollback", "PPO-RPE's stronger pull"]
+    if any(r["method"] == METHOD_LABELS["spo"] for r in stats.rows):  # past 1 + sign(A) eps
+        acts.append("SPO's reversed gradient")
+    n = {3: "three", 4: "four"}[len(acts)]
     lines.append(
-        "\nHow much the three surrogates can differ: the share of a run's updates whose ratio "
-        "rho was past the threshold (where PPO's clip, PPO-RB's rollback or PPO-RPE's "
-        "stronger pull act) and the mean distance of rho from 1, both over all of the run's "
-        "updates, then averaged over seeds. Where rho stays near 1 the three objectives give "
+        f"\nHow much the {n} surrogates can differ: the share of a run's updates whose ratio "
+        f"rho was past the threshold (where {', '.join(acts[:-1])} or {acts[-1]} "
+        "act) and the mean distance of rho from 1, both over all of the run's "
+        f"updates, then averaged over seeds. Where rho stays near 1 the {n} objectives give "
         "nearly the same gradient.\n"
     )
     return lines

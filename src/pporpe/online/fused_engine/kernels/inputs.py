@@ -29,7 +29,8 @@ F_NAMES: tuple[str, ...] = (
 ) = range(len(F_NAMES))  # fmt: skip
 
 METHOD_CODES = {("ppo", "derived"): 0, ("ppo", "printed"): 0, ("rb", "derived"): 1,
-                ("rb", "printed"): 1, ("rpe", "derived"): 2, ("rpe", "printed"): 3}  # fmt: skip
+                ("rb", "printed"): 1, ("rpe", "derived"): 2, ("rpe", "printed"): 3,
+                ("spo", "derived"): 4, ("spo", "printed"): 4}  # fmt: skip
 """Surrogate code of (method, rpe_form)."""
 
 ACTIVATIONS = {"swish": 0, "relu": 1, "tanh": 2}
