@@ -40,6 +40,18 @@ def test_a_task_with_discrete_actions_is_refused_before_any_folder(tmp_path: Pat
     assert not out.exists()  # no run folder, .lock, error.txt, grid.json or status.json
 
 
+def test_a_task_gymnasium_no_longer_builds_names_the_spec_and_the_task(tmp_path: Path) -> None:
+    """Hopper-v3 is registered, but building it raises an ImportError (moved to
+    gymnasium-robotics): the line named neither the spec nor the task."""
+    spec = tmp_path / "old.toml"
+    spec.write_text(SPEC.replace('"pendulum"', '"Hopper-v3"'))
+    out = tmp_path / "out"
+    code, line = reproduce(spec, out)
+    assert code == 2
+    assert line.startswith(f"pporpe reproduce: error: {spec}: task 'Hopper-v3': "), line
+    assert not out.exists()
+
+
 def test_an_out_that_is_a_file_is_named_as_train_names_it(tmp_path: Path) -> None:
     spec = tmp_path / "tiny.toml"
     spec.write_text(SPEC)

@@ -138,3 +138,202 @@ def test_a_run_in_training_writes_its_live_progress_and_removes_it_at_the_end(
     assert not (tmp_path / "ra" / LIVE_FILE).exists()  # removed when the run finished
     run_queue([(cfg, runs[1][1])], live_seconds=None)
     assert not (tmp_path / "rb" / LIVE_FILE).exists()  # never written unless asked
+
+
+# -- issue 56: one line, every time ---------------------------------------------------------
+def cli(*args: str, env: dict[str, str] | None = None) -> tuple[int, str, list[str]]:
+    """``pporpe ARGS`` in a subprocess, as a user runs it: exit status, standard output and
+    the lines of standard error."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "pporpe.cli", *args], capture_output=True,
+                          text=True, timeout=300, env=env)  # fmt: skip
+    return proc.returncode, proc.stdout, proc.stderr.splitlines()
+
+
+@pytest.fixture(scope="module")
+def pendulum_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("screen") / "run"
+    train(small_run(run, episodes=1, eval_episodes=0), run, progress=False)
+    return run
+
+
+def test_evaluate_into_a_folder_it_cannot_write_prints_the_returns_and_says_where(
+    pendulum_run: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """It ran every episode, printed only "Operation not permitted: .../.evaluation.json.tmp"
+    and the returns were lost."""
+    import errno
+
+    import pporpe.io
+
+    def read_only(path: Any, data: Any) -> None:
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    with monkeypatch.context() as patched:
+        patched.setattr(pporpe.io, "atomic_write_json", read_only)
+        assert main(["evaluate", str(pendulum_run), "--episodes", "3", "--quiet"]) == 2
+    out, err = capsys.readouterr()
+    target = pendulum_run / "evaluation.json"
+    assert err.splitlines() == [
+        f"pporpe evaluate: error: could not save the test returns in {target}: Read-only "
+        "file system (the returns are printed above)"
+    ]
+    assert not target.exists()
+    # the same evaluation where it can write: the printed returns are the saved ones
+    assert main(["evaluate", str(pendulum_run), "--episodes", "3", "--quiet"]) == 0
+    saved = json.loads(target.read_text())["returns"]
+    lines = out.splitlines()
+    assert lines[0] == capsys.readouterr().out.splitlines()[0]  # the test-return line
+    assert lines[1:] == ["test returns (not saved): " + " ".join(map(repr, saved))]
+
+
+def test_evaluate_in_a_read_only_mount_through_the_command(
+    pendulum_run: Path, tmp_path: Path
+) -> None:
+    """The same on a read-only bind mount (needs root and mount), as a shared results
+    folder is: one line on standard error, exit status 2, the folder unchanged."""
+    import subprocess
+
+    mounted = tmp_path / "ro"
+    mounted.mkdir()
+    done = subprocess.run(["mount", "--bind", "-o", "ro", str(pendulum_run), str(mounted)],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    if done.returncode != 0:
+        pytest.skip(f"cannot make a read-only mount here: {done.stderr.strip()}")
+    try:
+        if not subprocess.run(["touch", str(mounted / "probe")], check=False).returncode:
+            pytest.skip("the bind mount is writable here")
+        before = sorted(p.name for p in mounted.iterdir())
+        code, out, err = cli("evaluate", str(mounted), "--episodes", "2", "--quiet")
+        assert code == 2 and out.startswith("test return over 2 episodes: median ")
+        assert "test returns (not saved): " in out
+        assert err == [
+            f"pporpe evaluate: error: could not save the test returns in "
+            f"{mounted / 'evaluation.json'}: Read-only file system (the returns are printed "
+            "above)"
+        ]
+        assert sorted(p.name for p in mounted.iterdir()) == before
+    finally:
+        subprocess.run(["umount", "-l", str(mounted)], check=False)
+
+
+def test_a_run_of_the_other_learner_kind_is_refused_naming_the_kind(
+    tmp_path: Path, pendulum_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An online run pointed at a batch folder listed 37 "differing" fields."""
+    batch = tmp_path / "batch"
+    assert main(["train", "--learner", "batch", "--env", "pendulum", "--steps", "32",
+                 "--n-envs", "1", "--n-steps", "32", "--batch-size", "32", "--eval-episodes",
+                 "0", *TINY, "--out", str(batch)]) == 0  # fmt: skip
+    capsys.readouterr()
+    files = sorted(p.name for p in batch.iterdir())
+    assert main(["train", "--episodes", "1", *TINY, "--out", str(batch)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"pporpe train: error: {batch}: this folder holds a batch run, not the online run of "
+        "this command (--learner); use another --out folder, or --force to start over in it"
+    ]
+    assert sorted(p.name for p in batch.iterdir()) == files
+    assert main(["train", "--learner", "batch", "--steps", "32", *TINY,
+                 "--out", str(pendulum_run)]) == 2  # fmt: skip
+    assert capsys.readouterr().err.splitlines() == [
+        f"pporpe train: error: {pendulum_run}: this folder holds an online run, not the batch "
+        "run of this command (--learner); use another --out folder, or --force to start over "
+        "in it"
+    ]
+
+
+def test_a_task_that_cannot_be_built_is_named_and_force_removes_nothing(
+    pendulum_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Hopper-v3 is registered but moved out of Gymnasium: its error did not name the task,
+    and --force had already emptied the folder."""
+    files = {p.name: p.stat().st_mtime_ns for p in pendulum_run.iterdir()}
+    code = main(["train", "--env", "Hopper-v3", "--episodes", "1", "--force", *TINY,
+                 "--out", str(pendulum_run)])  # fmt: skip
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith("pporpe train: error: task 'Hopper-v3': "), err
+    assert {p.name: p.stat().st_mtime_ns for p in pendulum_run.iterdir()} == files
+
+
+# -- recording a MuJoCo task on a machine without a display -----------------------------------
+def test_egl_is_chosen_only_without_a_display_and_when_unset(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import os
+    import sys
+
+    from pporpe.evaluation import prefer_egl_without_display
+
+    monkeypatch.setattr(sys, "platform", "linux")
+    for variable in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(variable, raising=False)
+    assert prefer_egl_without_display() is True and os.environ["MUJOCO_GL"] == "egl"
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")  # the user's choice stays
+    assert prefer_egl_without_display() is False and os.environ["MUJOCO_GL"] == "osmesa"
+    for display in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv("MUJOCO_GL", raising=False)
+        monkeypatch.setenv(display, ":0")
+        assert prefer_egl_without_display() is False and "MUJOCO_GL" not in os.environ
+        monkeypatch.delenv(display)
+    monkeypatch.setattr(sys, "platform", "darwin")  # macOS renders without a display
+    assert prefer_egl_without_display() is False and "MUJOCO_GL" not in os.environ
+
+
+@pytest.fixture(scope="module")
+def mujoco_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("mujoco")
+    pytest.importorskip("moviepy")
+    run = tmp_path_factory.mktemp("mujoco") / "pendulum"
+    cfg = TrainConfig(env="InvertedPendulum-v5", seed=0, episodes=1, eval_episodes=0,
+                      learner=OnlineConfig(layers=1, units=8, compile=False))  # fmt: skip
+    train(cfg, run, progress=False)
+    return run
+
+
+def headless(**variables: str) -> dict[str, str]:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env.pop("MUJOCO_GL", None)
+    env.pop("PYOPENGL_PLATFORM", None)
+    return {**env, **variables}
+
+
+def test_video_of_a_mujoco_task_without_a_display_uses_egl(
+    mujoco_run: Path, tmp_path: Path
+) -> None:
+    """It was a mujoco.FatalError traceback (GLFW needs a display). Now MUJOCO_GL=egl is
+    tried; where EGL is missing too, one line names MUJOCO_GL."""
+    video = tmp_path / "video"
+    code, out, err = cli("evaluate", str(mujoco_run), "--episodes", "1", "--video", str(video),
+                         "--quiet", env=headless())  # fmt: skip
+    if code == 0:
+        assert err == [] and (video / "rl-video-episode-0.mp4").stat().st_size > 0, out
+    else:
+        assert code == 2 and len(err) == 1 and "and MUJOCO_GL=egl gave none" in err[0], err
+
+
+@pytest.mark.parametrize(
+    ("gl", "start"),
+    [
+        ("glfw", "pporpe evaluate: error: recording video of InvertedPendulum-v5 needs an OpenGL "
+         "context, and MUJOCO_GL=glfw gave none (FatalError: "),
+        ("nonsense", "pporpe evaluate: error: InvertedPendulum-v5 is a MuJoCo task, and MuJoCo "
+         "cannot load the OpenGL backend MUJOCO_GL=nonsense (RuntimeError: "),
+    ],
+)  # fmt: skip
+def test_a_mujoco_gl_that_cannot_render_is_one_line_naming_it(
+    mujoco_run: Path, tmp_path: Path, gl: str, start: str
+) -> None:
+    video = tmp_path / "video"
+    code, out, err = cli("evaluate", str(mujoco_run), "--episodes", "1", "--video", str(video),
+                         "--quiet", env=headless(MUJOCO_GL=gl))  # fmt: skip
+    assert code == 2 and out == "" and len(err) == 1, err
+    assert err[0].startswith(start) and err[0].endswith(
+        "set MUJOCO_GL=egl (a GPU driver's EGL) or MUJOCO_GL=osmesa (software, needs "
+        "libOSMesa)" + (", or unset it" if gl == "nonsense" else "") + " (docs/getting-started.md)"
+    ), err
+    assert not video.exists()

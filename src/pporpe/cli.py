@@ -10,6 +10,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from .cli_parser import USAGE_ERROR, OneLineParser, bounded_int, subcommand_parser
+
 __all__ = ["build_parser", "main"]
 
 INTERRUPTED_EXIT = 130
@@ -34,12 +36,19 @@ def _cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
+ONLINE_ONLY_RUN_FLAGS = ("episodes",)
+"""Flags of the run's settings (:class:`TrainConfig`) that batch PPO does not take: it
+trains for ``--steps``."""
+
+
 def _train_flags() -> tuple[Any, dict[str, Any]]:
     """The generated flags of ``pporpe train`` and their groups: the run's settings
     (:class:`TrainConfig`), the online learner's (:class:`OnlineConfig`) and batch PPO's
-    (:class:`BatchConfig`, whose ``total_steps`` is ``--steps``)."""
+    (:class:`BatchConfig`, whose ``total_steps`` is ``--steps``). Budgets and seeds have
+    upper bounds (:data:`~pporpe.config.MAX_STEPS`, ``MAX_EPISODES``, ``MAX_SEED``)."""
     from .batch.config import BatchConfig
     from .cli_flags import ConfigFlags, FlagGroup
+    from .config import MAX_EPISODES, MAX_SEED, MAX_STEPS
     from .online.config import OnlineConfig, TrainConfig
 
     # the same settings of a run; checkpoint_every counts episodes of one, updates of the other
@@ -49,7 +58,25 @@ def _train_flags() -> tuple[Any, dict[str, Any]]:
         "online": FlagGroup("online learner", OnlineConfig),
         "batch": FlagGroup("batch PPO", BatchConfig, skip=shared, rename={"total_steps": "steps"}),
     }
-    return ConfigFlags(list(groups.values())), groups
+    bounds = {"steps": MAX_STEPS, "episodes": MAX_EPISODES, "eval_episodes": MAX_EPISODES,
+              "seed": MAX_SEED}  # fmt: skip
+    return ConfigFlags(list(groups.values()), bounds), groups
+
+
+def _train_help_sections(flags: Any, groups: dict[str, Any]) -> list[tuple[str, list[str]]]:
+    """``pporpe train --help``'s sections: the flags both learner kinds take, then those
+    only the online learner takes, then those only batch PPO takes."""
+    takers: dict[str, list[str]] = {"common": [], "online": [], "batch": []}
+    for flag, owners in flags.owners.items():
+        mine = {group for group, _ in owners}
+        online = bool(mine & {groups["run"], groups["online"]})
+        batch = bool(mine & {groups["run"], groups["batch"]}) and flag not in ONLINE_ONLY_RUN_FLAGS
+        takers["common" if online and batch else "online" if online else "batch"].append(flag)
+    return [
+        ("common settings (both learners)", takers["common"]),
+        ("online learner settings (--learner online, the default)", takers["online"]),
+        ("batch learner settings (--learner batch: batch PPO)", takers["batch"]),
+    ]
 
 
 def _refuse_other_kinds_flags(args: argparse.Namespace, flags: Any, own: set[Any]) -> None:
@@ -78,8 +105,11 @@ def _batch_config(args: argparse.Namespace) -> object:
     from .cli_flags import values_for
 
     flags, groups = _train_flags()
-    if hasattr(args, "episodes"):
-        raise ValueError("--learner batch trains for --steps (environment steps), not --episodes")
+    for flag in ONLINE_ONLY_RUN_FLAGS:
+        if hasattr(args, flag):
+            raise ValueError(
+                f"--learner batch trains for --steps (environment steps), not --{flag}"
+            )
     _refuse_other_kinds_flags(args, flags, {groups["run"], groups["batch"]})
     run = values_for(flags, args, groups["run"])
     run.pop("steps", None)
@@ -94,10 +124,13 @@ _CONFIG_FROM_ARGS = {"online": _online_config, "batch": _batch_config}
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .envs import resolve_env_id
+    from .evaluation import check_mujoco_gl
 
     # validate everything before any environment is built
     cfg: Any = _CONFIG_FROM_ARGS[args.learner](args)
     resolve_env_id(cfg.env)
+    check_mujoco_gl(cfg.env)
+    _check_task(cfg.env)  # before --force removes anything
     if args.force:
         from .runs.folder import clear_run_dir
 
@@ -112,6 +145,20 @@ def _cmd_train(args: argparse.Namespace) -> int:
         _print_eval(result.evaluation)
     print(f"run folder: {result.run_dir}")
     return 0
+
+
+def _check_task(env: str) -> None:
+    """Build the task once: one that cannot be built (a removed version such as Hopper-v3,
+    a missing package, discrete actions) is refused naming it."""
+    from .envs import make_env
+
+    try:
+        make_env(env).close()
+    except (ValueError, ImportError) as exc:
+        if env in str(exc):
+            raise
+        error = ImportError if isinstance(exc, ImportError) else ValueError
+        raise error(f"task {env!r}: {exc}") from None
 
 
 def _trained_line(result: Any, batch: bool) -> str:
@@ -164,8 +211,14 @@ def _print_eval(ev: object) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .evaluation import EVAL_SEED_OFFSET, check_video_support, evaluate_policy
+    from .evaluation import (
+        EVAL_SEED_OFFSET,
+        check_mujoco_gl,
+        check_video_support,
+        evaluate_policy,
+    )
     from .io import atomic_write_json
+    from .runs.folder import read_config
     from .runs.loop import load_policy
     from .text import count
 
@@ -178,6 +231,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         check_video_support()  # before any work
         if Path(args.video).exists() and not Path(args.video).is_dir():
             raise ValueError(f"--video must be a folder; {args.video} is a file")
+    check_mujoco_gl(read_config(args.run_dir)[1].env)  # before MuJoCo is imported
     policy = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
     cfg = policy.config
     seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed
@@ -190,22 +244,33 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         video_episodes=args.video_episodes,
         progress=not args.quiet,
     )
-    out = Path(args.run_dir) / "evaluation.json"
-    atomic_write_json(out, {**ev.to_dict(), "seed": seed})
     _print_eval(ev)
-    print(f"saved {out}")
+    out = Path(args.run_dir) / "evaluation.json"
+    try:
+        atomic_write_json(out, {**ev.to_dict(), "seed": seed})
+    except OSError as exc:  # a read-only folder: the returns are printed, not lost
+        print("test returns (not saved): " + " ".join(map(repr, ev.returns)))
+        unsaved = f"could not save the test returns in {out}: {exc.strerror or exc}"
+    else:
+        print(f"saved {out}")
+        unsaved = ""
     if args.video is not None:
         videos = sorted(Path(args.video).glob("*.mp4"))
         names = ", ".join(v.name for v in videos)
         print(f"recorded {count(len(videos), 'video')} in {args.video}: {names}")
+    if unsaved:
+        raise ValueError(f"{unsaved} (the returns are printed above)")
     return 0
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from .evaluation import check_mujoco_gl
     from .experiments.grids.spec import load_spec, select_runs
     from .text import count
 
     spec = load_spec(args.spec)  # every run is validated before any starts
+    for env in spec.envs:
+        check_mujoco_gl(env)
     whole = spec
     if args.tasks or args.methods or args.seeds:  # one chunk of the grid, or one cell
         spec = select_runs(spec, args.tasks, args.methods, args.seeds)
@@ -274,18 +339,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an int >= 1; got {value}")
-    return value
-
-
-def _nonneg_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an int >= 0; got {value}")
-    return value
+_positive_int = bounded_int(None, low=1)
 
 
 def _nonneg_float(text: str) -> float:
@@ -303,10 +357,23 @@ def _add_figures(sub: Any) -> None:
     fig = sub.add_parser(
         "figures", help="draw the paper's analytic figures (relative ratio, negative loss)"
     )
-    fig.add_argument("--out", default="results/figures", help="output folder (PNG and PDF)")
-    fig.add_argument("--eps", type=float, default=0.1, help="threshold eps in (0, 1)")
-    fig.add_argument("--beta", type=float, default=0.5, help="RPE mixture ratio beta in [0, 1]")
-    fig.add_argument("--eta", type=float, default=0.3, help="PPO-RB rollback eta >= 0")
+    fig.add_argument(
+        "--out",
+        default="results/figures",
+        help="output folder (PNG and PDF) [default: %(default)s]",
+    )
+    fig.add_argument(
+        "--eps", type=float, default=0.1, help="threshold eps in (0, 1) [default: %(default)s]"
+    )
+    fig.add_argument(
+        "--beta",
+        type=float,
+        default=0.5,
+        help="RPE mixture ratio beta in [0, 1] [default: %(default)s]",
+    )
+    fig.add_argument(
+        "--eta", type=float, default=0.3, help="PPO-RB rollback eta >= 0 [default: %(default)s]"
+    )
     fig.set_defaults(func=_cmd_figures)
 
 
@@ -332,18 +399,26 @@ def _add_train(sub: Any) -> None:
         help="start over: remove a previous run's files from --out first",
     )
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
-    _train_flags()[0].add_to(tr)
+    flags, groups = _train_flags()
+    flags.add_to(tr, _train_help_sections(flags, groups))
     tr.set_defaults(func=_cmd_train)
 
 
 def _add_evaluate(sub: Any) -> None:
     """The ``pporpe evaluate`` subcommand."""
+    from .config import MAX_EPISODES, MAX_SEED
+
     ev = sub.add_parser("evaluate", help="test a trained run: median, mean and IQR of returns")
     ev.add_argument("run_dir", help="run folder written by `pporpe train`")
-    ev.add_argument("--episodes", type=_positive_int, default=50, help="test episodes (default 50)")
+    ev.add_argument(
+        "--episodes",
+        type=bounded_int(MAX_EPISODES, low=1),
+        default=50,
+        help="test episodes (default 50)",
+    )
     ev.add_argument(
         "--seed",
-        type=_nonneg_int,
+        type=bounded_int(MAX_SEED, low=0),
         default=None,
         help="environment seed (default: training seed + 1000003)",
     )
@@ -351,7 +426,8 @@ def _add_evaluate(sub: Any) -> None:
         "--video",
         metavar="DIR",
         default=None,
-        help='record test episodes as MP4 into DIR (needs pip install "pporpe[video]")',
+        help='record test episodes as MP4 into DIR (needs pip install "pporpe[video]"; '
+        "default: no video)",
     )
     ev.add_argument(
         "--video-episodes",
@@ -365,6 +441,7 @@ def _add_evaluate(sub: Any) -> None:
 
 def _add_reproduce(sub: Any) -> None:
     """The ``pporpe reproduce`` subcommand."""
+    from .config import MAX_SEED
     from .experiments.grids.reproduce import DEFAULT_POPULATION
 
     rp = sub.add_parser("reproduce", help="run a methods x tasks x seeds grid from a TOML spec")
@@ -405,19 +482,15 @@ def _add_reproduce(sub: Any) -> None:
         "checkpoint_every (default 60); whatever the count, every run is also checkpointed "
         "30 s into the command, 1 min later, then every 2 min",
     )
-    rp.add_argument(
-        "--tasks", nargs="+", default=None, metavar="TASK", help="only these tasks of the spec"
-    )
-    rp.add_argument(
-        "--methods", nargs="+", default=None, metavar="METHOD", help="only these methods"
-    )
+    rp.add_argument("--tasks", nargs="+", metavar="TASK", help="only these tasks (default: all)")
+    rp.add_argument("--methods", nargs="+", metavar="METHOD", help="only these (default: all)")
     rp.add_argument(
         "--seeds",
         nargs="+",
-        type=_nonneg_int,
+        type=bounded_int(MAX_SEED, low=0),
         default=None,
         metavar="SEED",
-        help="only these seeds",
+        help="only these seeds (default: all)",
     )
     rp.add_argument("--report", action="store_true", help="write the report when done")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -433,7 +506,7 @@ def _add_report(sub: Any) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``pporpe`` command."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="pporpe",
         description="PPO-RPE, PPO and PPO-RB: train, evaluate and reproduce the paper.",
     )
@@ -450,16 +523,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``pporpe`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the subcommand's parser: "pporpe train: error: ..."
+        subcommand_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.func(args))
     except (ValueError, ImportError) as exc:  # ImportError: an optional extra is missing
         print(f"pporpe {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return USAGE_ERROR
     except OSError as exc:  # a full disk, a vanished folder: the files written so far stay
         where = f": {exc.filename}" if exc.filename else ""
         print(f"pporpe {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 2
+        return USAGE_ERROR
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM: one line, never a traceback
         if isinstance(exc, _CommandInterrupted):
             print(f"pporpe {args.command}: {exc}", file=sys.stderr)

@@ -26,6 +26,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args, get_origin
 
+from .cli_parser import bounded_int
+
 __all__ = ["ConfigFlags", "FlagGroup", "field_docs", "values_for"]
 
 
@@ -85,12 +87,13 @@ def _none_or(convert: Any) -> Any:
     return parse
 
 
-def _argparse_spec(tp: Any) -> dict[str, Any]:
-    """argparse keywords (type, choices, nargs, action) for a field's annotation."""
+def _argparse_spec(tp: Any, bound: int | None = None) -> dict[str, Any]:
+    """argparse keywords (type, choices, nargs, action) for a field's annotation; an int
+    field with a ``bound`` takes no value above it."""
     args = get_args(tp)
     if get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
         (inner,) = [a for a in args if a is not type(None)]
-        spec = _argparse_spec(inner)
+        spec = _argparse_spec(inner, bound)
         return {**spec, "type": _none_or(spec.get("type", str)), "metavar": "VALUE|none"}
     if get_origin(tp) is Literal:
         return {"type": str, "choices": [str(a) for a in args]}
@@ -100,6 +103,8 @@ def _argparse_spec(tp: Any) -> dict[str, Any]:
         if not args or any(a is Ellipsis for a in args) or len(set(args)) != 1:
             raise TypeError(f"no flag for a tuple of {args}")
         return {"type": args[0], "nargs": len(args)}
+    if tp is int and bound is not None:
+        return {"type": bounded_int(bound)}
     if tp in (int, float, str):
         return {"type": tp}
     raise TypeError(f"no flag for a field of type {tp!r}")
@@ -125,8 +130,12 @@ def _default_text(f: dataclasses.Field[Any]) -> str:
 class ConfigFlags:
     """Flags of several :class:`FlagGroup` on one parser (shared names become one flag)."""
 
-    def __init__(self, groups: Sequence[FlagGroup]) -> None:
+    def __init__(
+        self, groups: Sequence[FlagGroup], bounds: Mapping[str, int] | None = None
+    ) -> None:
         self.groups = list(groups)
+        self.bounds = dict(bounds or {})
+        """Flag -> the largest value it takes (an int flag: a budget, a seed)."""
         self.owners: dict[str, list[tuple[FlagGroup, str]]] = {}
         """Flag -> the groups (and their field names) it sets."""
         self._specs: dict[str, dict[str, Any]] = {}
@@ -137,7 +146,7 @@ class ConfigFlags:
             docs = field_docs(group.cls)
             hints = typing.get_type_hints(group.cls)
             for flag, f in group.fields():
-                spec = _argparse_spec(hints[f.name])
+                spec = _argparse_spec(hints[f.name], self.bounds.get(flag))
                 if flag in self._specs and _spec_key(self._specs[flag]) != _spec_key(spec):
                     raise TypeError(f"flag --{flag} has different types in its configs")
                 self._specs.setdefault(flag, spec)
@@ -147,22 +156,35 @@ class ConfigFlags:
                     self._help[flag].append(doc)
                 self._defaults.setdefault(flag, []).append((group.short, _default_text(f)))
 
-    def add_to(self, parser: argparse.ArgumentParser) -> None:
-        """Add every flag, in the groups' order; none has a value unless given."""
-        for group in self.groups:
-            section = parser.add_argument_group(f"{group.name} settings")
-            for flag, _ in group.fields():
-                if self.owners[flag][0][0] is not group:
-                    continue  # added with the first group that has it
-                doc = self._doc_help(flag)
-                alone = len(self.owners[flag]) == 1 and group is not self.groups[0]
-                only = f" ({group.name} only)" if alone else ""
-                help_text = f"{doc} [{self._default_help(flag)}]{only}".replace("%", "%%")
+    def add_to(
+        self,
+        parser: argparse.ArgumentParser,
+        sections: Sequence[tuple[str, Sequence[str]]] | None = None,
+    ) -> None:
+        """Add every flag, none with a value unless given, under ``sections``: ``(title,
+        flags)`` pairs that place every flag once (default: each flag under the first group
+        that has it, titled ``"<group name> settings"``). Each flag's help ends with its
+        default, or each group's where they differ."""
+        if sections is None:
+            sections = [
+                (
+                    f"{group.name} settings",
+                    [f for f, _ in group.fields() if self.owners[f][0][0] is group],
+                )
+                for group in self.groups
+            ]
+        placed = [flag for _, flags in sections for flag in flags]
+        if sorted(placed) != sorted(self.owners):
+            raise ValueError(f"sections must place every flag once; got {placed}")
+        for title, flags in sections:
+            section = parser.add_argument_group(title)
+            for flag in flags:
+                help_text = f"{self._doc_help(flag)} [{self._default_help(flag)}]"
                 section.add_argument(
                     f"--{flag.replace('_', '-')}",
                     dest=flag,
                     default=argparse.SUPPRESS,
-                    help=help_text,
+                    help=help_text.replace("%", "%%"),
                     **self._specs[flag],
                 )
 

@@ -21,6 +21,9 @@ from .surrogates import METHODS, Method, RPEForm, check_surrogate_params
 
 __all__ = [
     "ACTIVATIONS",
+    "MAX_EPISODES",
+    "MAX_SEED",
+    "MAX_STEPS",
     "METHODS",
     "POLICY_KINDS",
     "RPE_FORMS",
@@ -48,6 +51,17 @@ Activation = Literal["swish", "relu", "tanh"]
 ACTIVATIONS: tuple[str, ...] = get_args(Activation)
 
 RPE_FORMS: tuple[str, ...] = get_args(RPEForm)
+
+MAX_STEPS = 10**11
+"""Upper bound of a run's budget in environment steps (``steps``, batch PPO's
+``total_steps``): three years at 1000 steps/s, far beyond any real run."""
+
+MAX_EPISODES = 10**8
+"""Upper bound of a number of episodes: a run's budget (``episodes``) or its test
+episodes (``eval_episodes``, ``pporpe evaluate --episodes``)."""
+
+MAX_SEED = 2**32 - 1
+"""Largest seed (a run's members and its test environment add offsets to it)."""
 
 
 def require(cond: bool, name: str, value: object, allowed: str) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -15,14 +16,17 @@ from typing import Any
 
 import numpy as np
 
-from .envs import make_env
+from .envs import make_env, resolve_env_id
 
 __all__ = [
     "EVAL_SEED_OFFSET",
+    "MUJOCO_GL_HEADLESS",
     "EvalResult",
+    "check_mujoco_gl",
     "check_video_support",
     "evaluate_policy",
     "load_evaluation",
+    "prefer_egl_without_display",
     "summarize_returns",
 ]
 
@@ -167,7 +171,13 @@ def _run_episodes(
 def check_video_support(env_name: str | None = None) -> None:
     """Raise ImportError, saying what to install, when video recording is unavailable:
     moviepy, and with ``env_name`` what that task renders its frames with (pygame for
-    Gymnasium's classic-control tasks such as Pendulum-v1; one frame is rendered to see)."""
+    Gymnasium's classic-control tasks such as Pendulum-v1; one frame is rendered to see).
+
+    A MuJoCo task renders through OpenGL, which ``MUJOCO_GL`` chooses (GLFW, its default,
+    needs a display): on Linux without a display (no ``DISPLAY`` or ``WAYLAND_DISPLAY``)
+    and ``MUJOCO_GL`` unset, it is set to ``egl`` (a GPU driver's headless OpenGL) for
+    this process; a frame that still cannot be rendered raises one line naming
+    ``MUJOCO_GL`` and what to set it to."""
     import importlib.util
 
     if importlib.util.find_spec("moviepy") is None:
@@ -179,11 +189,91 @@ def check_video_support(env_name: str | None = None) -> None:
     from gymnasium.error import DependencyNotInstalled
 
     env = make_env(env_name, render_mode="rgb_array")
+    mujoco = _is_mujoco(env)
+    if mujoco:
+        prefer_egl_without_display()
     try:
-        env.reset(seed=0)
-        env.render()
+        with warnings.catch_warnings():  # GLFW warns before it fails without a display
+            warnings.simplefilter("ignore")
+            env.reset(seed=0)
+            env.render()
     except DependencyNotInstalled as exc:
         reason = (str(exc).strip().splitlines() or ["a package is missing"])[0]
         raise ImportError(f"recording video of {env_name} needs its renderer: {reason}") from None
+    except Exception as exc:
+        if not mujoco:
+            raise
+        raise ImportError(_mujoco_gl_problem(env_name, exc)) from None
     finally:
         env.close()
+
+
+MUJOCO_GL_HEADLESS = "egl"
+"""What ``MUJOCO_GL`` is set to for a video on Linux without a display, when unset."""
+
+
+def prefer_egl_without_display() -> bool:
+    """Set ``MUJOCO_GL`` to :data:`MUJOCO_GL_HEADLESS` on Linux without a display when it is
+    unset (MuJoCo would try GLFW, which needs a display); whether it was set."""
+    import os
+    import sys
+
+    if os.environ.get("MUJOCO_GL") or not sys.platform.startswith("linux"):
+        return False
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return False
+    os.environ["MUJOCO_GL"] = MUJOCO_GL_HEADLESS
+    return True
+
+
+def check_mujoco_gl(env_name: str) -> None:
+    """For a MuJoCo task, with ``MUJOCO_GL`` set: import MuJoCo now. MuJoCo reads
+    ``MUJOCO_GL`` on import, and a backend it cannot load (``osmesa`` without libOSMesa, a
+    misspelt value) fails there with an AttributeError or RuntimeError; here that is one
+    ``ImportError`` naming ``MUJOCO_GL``. Other tasks never import MuJoCo: nothing to do."""
+    import importlib.util
+    import os
+
+    import gymnasium
+
+    gl = os.environ.get("MUJOCO_GL")
+    if not gl or importlib.util.find_spec("mujoco") is None:
+        return
+    entry_point = gymnasium.envs.registry[resolve_env_id(env_name)].entry_point
+    if not (isinstance(entry_point, str) and entry_point.startswith("gymnasium.envs.mujoco")):
+        return
+    try:
+        import mujoco  # noqa: F401
+    except Exception as exc:
+        reason = " ".join(str(exc).split())[:160] or "no reason given"
+        raise ImportError(
+            f"{env_name} is a MuJoCo task, and MuJoCo cannot load the OpenGL backend "
+            f"MUJOCO_GL={gl} ({type(exc).__name__}: {reason}); set MUJOCO_GL=egl (a GPU "
+            "driver's EGL) or MUJOCO_GL=osmesa (software, needs libOSMesa), or unset it "
+            "(docs/getting-started.md)"
+        ) from None
+
+
+def _is_mujoco(env: Any) -> bool:
+    """Whether ``env`` is a Gymnasium MuJoCo task (rendered through ``MUJOCO_GL``)."""
+    import sys
+
+    if "mujoco" not in sys.modules:  # a MuJoCo task has imported it
+        return False
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    return isinstance(env.unwrapped, MujocoEnv)
+
+
+def _mujoco_gl_problem(env_name: str, exc: Exception) -> str:
+    """One line: the MuJoCo task's frame could not be rendered with this ``MUJOCO_GL``."""
+    import os
+
+    gl = os.environ.get("MUJOCO_GL")
+    chosen = f"MUJOCO_GL={gl}" if gl else "MUJOCO_GL unset (GLFW, which needs a display)"
+    reason = " ".join(str(exc).split())[:160] or "no reason given"
+    return (
+        f"recording video of {env_name} needs an OpenGL context, and {chosen} gave none "
+        f"({type(exc).__name__}: {reason}); set MUJOCO_GL=egl (a GPU driver's EGL) or "
+        "MUJOCO_GL=osmesa (software, needs libOSMesa) (docs/getting-started.md)"
+    )

@@ -16,8 +16,10 @@ rl-zoo3) script switches surrogate with one word::
 * ``eta``: PPO-RB's rollback slope (eq. (5) of arXiv 2010.03290), used by ``"rb"``;
 * ``rpe_beta``: PPO-RPE's mixture ratio beta (eq. (8)), used by ``"rpe"``.
 
-SB3's ``clip_range`` is the paper's eps for all four (a float or a schedule; a schedule
-that reaches 0, like rl-zoo3's ``lin_0.2`` at the last update, is floored at 1e-8). Every
+SB3's ``clip_range`` is the paper's eps for all four (a float, a schedule or rl-zoo3's
+``"lin_<x>"`` string; a schedule that reaches 0, like ``lin_0.2`` at the last update, is
+floored at 1e-8). The three arguments and ``clip_range`` are checked at construction and
+again by ``load`` (after ``custom_objects``), each error naming the argument. Every
 other argument, the rollout collection, the value loss, advantage normalisation, gradient
 clipping, ``target_kl`` early stopping, ``save``/``load`` and the logger are SB3's. With
 ``surrogate="ppo"`` training is bit-identical to ``stable_baselines3.PPO`` for the same
@@ -42,6 +44,7 @@ from torch.nn import functional as F
 
 from .config import is_real
 from .surrogates import METHODS, regularization_amount, rpe_divergence, surrogate_objective
+from .zoo_literal import read_zoo_literal
 
 try:
     from gymnasium import spaces
@@ -53,14 +56,24 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
         "(or pip install stable-baselines3)"
     ) from exc
 
-__all__ = ["EPS_FLOOR", "PPO", "ZOO_NON_ARGS", "zoo_kwargs", "zoo_model"]
+__all__ = [
+    "EPS_FLOOR",
+    "PPO",
+    "SCHEDULE_KEYS",
+    "SCHEDULE_POINTS",
+    "ZOO_NON_ARGS",
+    "ZooLinearSchedule",
+    "zoo_kwargs",
+    "zoo_model",
+]
 
 EPS_FLOOR = 1e-8
 """Smallest eps passed to the surrogates (they need eps > 0; a clip schedule may reach 0)."""
 
 
 def _check_args(surrogate: Any, eta: Any, rpe_beta: Any, clip_range: Any) -> None:
-    """Validate the three pporpe arguments (and a constant ``clip_range``) before any work."""
+    """Validate the three pporpe arguments and ``clip_range`` (a number, a schedule or an
+    rl-zoo3 ``lin_<x>`` string) before any work, each error naming the argument."""
     if surrogate not in METHODS:
         raise ValueError(
             f"`surrogate` must be one of {', '.join(map(repr, METHODS))}; got {surrogate!r}"
@@ -69,18 +82,76 @@ def _check_args(surrogate: Any, eta: Any, rpe_beta: Any, clip_range: Any) -> Non
         raise ValueError(f"`eta` must be a finite number >= 0 (PPO-RB's slope); got {eta!r}")
     if not (is_real(rpe_beta) and 0.0 <= rpe_beta <= 1.0):
         raise ValueError(f"`rpe_beta` must be a number in [0, 1]; got {rpe_beta!r}")
-    if not callable(clip_range):  # a constant (a schedule is checked at each update)
-        if not (is_real(clip_range) and 0.0 < clip_range < 1.0):
+    if isinstance(clip_range, str):
+        clip_range = _schedule("clip_range", clip_range)
+        if isinstance(clip_range, str):
+            raise ValueError(
+                f"`clip_range` (the paper's eps) must be in (0, 1) for pporpe's surrogates, "
+                f"a schedule or an rl-zoo3 'lin_<x>' string; got {clip_range!r}"
+            )
+    _check_rpe_threshold(surrogate, rpe_beta, _largest_eps(clip_range), _shown(clip_range))
+
+
+def _check_rpe_threshold(surrogate: Any, rpe_beta: float, eps: float, shown: str) -> None:
+    """PPO-RPE's threshold exists: ``rpe_beta * (1 + eps) < 1`` (``shown``: the clip_range)."""
+    if surrogate == "rpe" and rpe_beta * (1.0 + eps) >= 1.0:
+        raise ValueError(
+            f"`rpe_beta` * (1 + `clip_range`) must be < 1 for PPO-RPE's threshold to "
+            f"exist; got rpe_beta={rpe_beta!r}, clip_range={shown}: with this "
+            f"clip_range rpe_beta must be < {1.0 / (1.0 + eps):.6g}"
+        )
+
+
+SCHEDULE_POINTS = 11
+"""A ``clip_range`` schedule is checked at this many evenly spaced ``progress_remaining``
+values from 1 (the first update) to 0 (the last), and again at every update."""
+
+
+def _shown(clip_range: Any) -> str:
+    """``clip_range`` as an error message shows it (``0.2``, ``lin_0.2``)."""
+    return repr(clip_range) if is_real(clip_range) else str(clip_range)
+
+
+def _largest_eps(clip_range: Any) -> float:
+    """The largest eps ``clip_range`` gives: a number in (0, 1), or a schedule whose values
+    are in [0, 1) (0 is floored at :data:`EPS_FLOOR`), else a ``ValueError`` naming it."""
+    schedule = getattr(clip_range, "value_schedule", clip_range)  # SB3's FloatSchedule
+    if isinstance(schedule, ZooLinearSchedule):
+        if not (is_real(schedule.start) and 0.0 < schedule.start < 1.0):
+            raise ValueError(
+                f"`clip_range` (the paper's eps) {schedule} goes from {schedule.start!r} "
+                f"to 0; its start must be in (0, 1) for pporpe's surrogates"
+            )
+        return float(schedule.start)
+    if not callable(schedule):
+        if not (is_real(schedule) and 0.0 < schedule < 1.0):
             raise ValueError(
                 f"`clip_range` (the paper's eps) must be in (0, 1) for pporpe's surrogates; "
                 f"got {clip_range!r}"
             )
-        if surrogate == "rpe" and rpe_beta * (1.0 + clip_range) >= 1.0:
-            raise ValueError(
-                f"`rpe_beta` * (1 + `clip_range`) must be < 1 for PPO-RPE's threshold to "
-                f"exist; got rpe_beta={rpe_beta!r}, clip_range={clip_range!r}: with this "
-                f"clip_range rpe_beta must be < {1.0 / (1.0 + clip_range):.6g}"
-            )
+        return float(schedule)
+    values = [
+        _scheduled_eps(schedule, 1.0 - i / (SCHEDULE_POINTS - 1)) for i in range(SCHEDULE_POINTS)
+    ]
+    return max(values)
+
+
+def _scheduled_eps(schedule: Callable[[float], Any], progress: float) -> float:
+    """The schedule's eps at ``progress`` remaining, in [0, 1), else a ``ValueError``."""
+    try:
+        value = schedule(progress)
+    except Exception as exc:
+        raise ValueError(
+            f"`clip_range` (a schedule) failed at progress_remaining={progress:g}: {exc}"
+        ) from None
+    if isinstance(value, np.floating | np.integer):
+        value = value.item()
+    if not (is_real(value) and 0.0 <= value < 1.0):
+        raise ValueError(
+            f"`clip_range` (a schedule, the paper's eps) must give values in [0, 1) for "
+            f"pporpe's surrogates; got {value!r} at progress_remaining={progress:g}"
+        )
+    return float(value)
 
 
 class PPO(_SB3PPO):
@@ -93,11 +164,13 @@ class PPO(_SB3PPO):
         rpe_beta: PPO-RPE's mixture ratio beta in [0, 1] with
             ``rpe_beta * (1 + clip_range) < 1`` (default 0.5; ``"rpe"`` only).
         *args, **kwargs: every other ``stable_baselines3.PPO`` argument, unchanged
-            (``clip_range`` is eps).
+            (``clip_range`` is eps), except that ``learning_rate``, ``clip_range`` and
+            ``clip_range_vf`` also take rl-zoo3's ``"lin_<x>"`` strings.
 
     Raises:
         ValueError: a bad ``surrogate``, ``eta``, ``rpe_beta`` or ``clip_range``, naming it,
-            before any environment or network is built.
+            before any environment or network is built; by ``load`` too, before the policy
+            is built, with the saved values and ``custom_objects`` applied.
     """
 
     def __init__(
@@ -110,12 +183,24 @@ class PPO(_SB3PPO):
         rpe_beta: float = 0.5,
         **kwargs: Any,
     ) -> None:
+        for key in SCHEDULE_KEYS:  # rl-zoo3's lin_<x> strings
+            if key in kwargs:
+                kwargs[key] = _schedule(key, kwargs[key])
         bound = inspect.signature(_SB3PPO.__init__).bind_partial(None, policy, env, *args, **kwargs)
         _check_args(surrogate, eta, rpe_beta, bound.arguments.get("clip_range", 0.2))
         self.surrogate = surrogate
         self.eta = float(eta)
         self.rpe_beta = float(rpe_beta)
         super().__init__(policy, env, *args, **kwargs)
+
+    def _setup_model(self) -> None:
+        """SB3's, after checking the pporpe arguments again: ``load`` reaches here with the
+        saved values, ``custom_objects`` and its keyword arguments applied, before it builds
+        the policy."""
+        _check_args(self.surrogate, self.eta, self.rpe_beta, self.clip_range)
+        self.clip_range = _schedule("clip_range", self.clip_range)
+        self.eta, self.rpe_beta = float(self.eta), float(self.rpe_beta)
+        super()._setup_model()
 
     # -- one update ---------------------------------------------------------------------
     def _minibatch(
@@ -159,8 +244,10 @@ class PPO(_SB3PPO):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         progress = self._current_progress_remaining
-        clip_range = float(self.clip_range(progress))  # type: ignore[operator]
+        clip_range = _scheduled_eps(self.clip_range, progress)  # type: ignore[arg-type]
         eps = max(clip_range, EPS_FLOOR)
+        shown = f"{eps!r} at progress_remaining={progress:g}"
+        _check_rpe_threshold(self.surrogate, self.rpe_beta, eps, shown)
         vf_schedule = self.clip_range_vf
         clip_vf = None if vf_schedule is None else float(vf_schedule(progress))  # type: ignore[operator]
         history: dict[str, list[float]] = {}
@@ -221,21 +308,35 @@ ZOO_NON_ARGS = ("n_envs", "n_timesteps", "normalize", "policy", "env_wrapper", "
 :func:`zoo_model`; a wrapper or frame stack is refused there)."""
 
 
-def _linear(start: float) -> Callable[[float], float]:
-    """rl-zoo3's ``lin_<start>``: ``start * progress_remaining`` (1 at the start, 0 at the end)."""
+class ZooLinearSchedule:
+    """rl-zoo3's ``lin_<start>``: ``start * progress_remaining``, from ``start`` at the first
+    update to 0 at the end (a class rather than a closure, so that a check can read
+    ``start``)."""
 
-    def schedule(progress_remaining: float) -> float:
-        return progress_remaining * start
+    def __init__(self, start: float) -> None:
+        self.start = start
 
-    return schedule
+    def __call__(self, progress_remaining: float) -> float:
+        return progress_remaining * self.start
+
+    def __repr__(self) -> str:
+        return f"lin_{self.start!r}"
+
+
+SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
+"""The arguments that take an rl-zoo3 ``lin_<x>`` string (a :class:`ZooLinearSchedule`)."""
 
 
 def _schedule(key: str, value: Any) -> Any:
+    """``value``, or the :class:`ZooLinearSchedule` of a ``lin_<x>`` string."""
     if isinstance(value, str) and value.startswith("lin_"):
         try:
-            return _linear(float(value[4:]))
+            start = float(value[4:])
         except ValueError:
-            raise ValueError(f"`{key}`: a schedule is 'lin_<number>'; got {value!r}") from None
+            start = math.nan
+        if not math.isfinite(start):
+            raise ValueError(f"`{key}`: a schedule is 'lin_<number>'; got {value!r}")
+        return ZooLinearSchedule(start)
     return value
 
 
@@ -243,23 +344,24 @@ def zoo_kwargs(hyperparams: dict[str, Any]) -> tuple[dict[str, Any], dict[str, A
     """Split an rl-zoo3 hyperparameter entry into ``(PPO keyword arguments, experiment)``.
 
     ``lin_<x>`` strings for ``learning_rate``, ``clip_range`` and ``clip_range_vf`` become
-    linear schedules, and a ``policy_kwargs`` string (rl-zoo3 writes e.g.
-    ``"dict(net_arch=[64, 64], activation_fn=nn.Tanh)"``) is evaluated with only ``dict``
-    and ``torch.nn`` (as ``nn``) in scope. ``surrogate``, ``eta`` and ``rpe_beta`` may be
-    in the entry like any other argument. The experiment part holds :data:`ZOO_NON_ARGS`
-    that were present.
+    linear schedules (:class:`ZooLinearSchedule`), and a ``policy_kwargs`` string (rl-zoo3
+    writes e.g. ``"dict(net_arch=[64, 64], activation_fn=nn.Tanh)"``) is read as data by
+    :func:`pporpe.zoo_literal.read_zoo_literal`, never evaluated: ``dict(...)`` and
+    ``{...}``, lists, tuples, numbers, strings, ``True``/``False``/``None`` and a fixed set
+    of ``nn.<activation>`` names; anything else raises ``ValueError`` naming
+    ``policy_kwargs``. ``surrogate``, ``eta`` and ``rpe_beta`` may be in the entry like any
+    other argument. The experiment part holds :data:`ZOO_NON_ARGS` that were present.
     """
     kwargs = {k: v for k, v in hyperparams.items() if k not in ZOO_NON_ARGS}
     experiment = {k: hyperparams[k] for k in ZOO_NON_ARGS if k in hyperparams}
-    for key in ("learning_rate", "clip_range", "clip_range_vf"):
+    for key in SCHEDULE_KEYS:
         if key in kwargs:
             kwargs[key] = _schedule(key, kwargs[key])
     pk = kwargs.get("policy_kwargs")
     if isinstance(pk, str):
-        try:
-            kwargs["policy_kwargs"] = eval(pk, {"__builtins__": {}}, {"dict": dict, "nn": torch.nn})
-        except Exception as exc:
-            raise ValueError(f"`policy_kwargs`: cannot read {pk!r}: {exc}") from None
+        kwargs["policy_kwargs"] = read_zoo_literal(pk, "policy_kwargs")
+        if not isinstance(kwargs["policy_kwargs"], dict):
+            raise ValueError(f"`policy_kwargs` must be a dict(...) of keywords; got {pk!r}")
     return kwargs, experiment
 
 

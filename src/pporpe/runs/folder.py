@@ -125,6 +125,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
     else:
         saved = _read_json(path)
         if not same_run_config(saved, config):
+            _refuse_another_kind(run, upgrade_config(saved).get("kind"), config.get("kind"))
             differ = _differences(upgrade_config(saved), upgrade_config(config))
             raise ValueError(
                 f"{run} holds a run with a different config (differing: "
@@ -132,6 +133,18 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
                 "or --force to start over in it"
             )
     return run, (run / "done.json").exists()
+
+
+def _refuse_another_kind(run: Path, saved: Any, wanted: Any) -> None:
+    """A folder of another learner kind is refused saying so (not as differing fields)."""
+    from .kinds import kinds
+
+    if saved != wanted and saved in kinds() and wanted in kinds():
+        article = "an" if saved[0] in "aeiou" else "a"
+        raise ValueError(
+            f"{run}: this folder holds {article} {saved} run, not the {wanted} run of this "
+            "command (--learner); use another --out folder, or --force to start over in it"
+        )
 
 
 RUN_FILES = ("config.json", CHECKPOINT, "episodes.csv", "evaluation.json", "done.json",

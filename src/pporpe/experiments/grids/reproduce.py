@@ -125,8 +125,9 @@ def _check_tasks(source: str, cfgs: list[Any]) -> None:
     for env in dict.fromkeys(cfg.env for cfg in cfgs):
         try:
             make_env(env).close()
-        except ValueError as exc:
-            raise ValueError(f"{source}: task {env!r}: {exc}") from None
+        except (ValueError, ImportError) as exc:  # ImportError: e.g. Hopper-v3, moved away
+            error = ImportError if isinstance(exc, ImportError) else ValueError
+            raise error(f"{source}: task {env!r}: {exc}") from None
 
 
 def _check_checkpoints(jobs: list[Job]) -> None:
