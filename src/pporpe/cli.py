@@ -98,9 +98,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     # validate everything before any environment is built
     cfg: Any = _CONFIG_FROM_ARGS[args.learner](args)
     resolve_env_id(cfg.env)
-    if args.force:
+    if args.force:  # the new run's task builds, then the old run's files go (none via a link)
+        from .envs import make_env
         from .runs.folder import clear_run_dir
 
+        make_env(cfg.env).close()
         clear_run_dir(args.out)
     result = _train_until_interrupted(cfg, args.out, progress=not args.quiet)
     if result.already_done:
@@ -166,6 +168,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from .evaluation import EVAL_SEED_OFFSET, check_video_support, evaluate_policy
     from .io import atomic_write_json
+    from .runs.links import refuse_links
     from .runs.loop import load_policy
     from .text import count
 
@@ -178,6 +181,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         check_video_support()  # before any work
         if Path(args.video).exists() and not Path(args.video).is_dir():
             raise ValueError(f"--video must be a folder; {args.video} is a file")
+    refuse_links(args.run_dir, ["evaluation.json"])  # written at the end, never via a link
     policy = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
     cfg = policy.config
     seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed

@@ -7,7 +7,6 @@ with the policy's location (no sampling).
 from __future__ import annotations
 
 import contextlib
-import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from .envs import make_env
+from .run_files import read_evaluation
 
 __all__ = [
     "EVAL_SEED_OFFSET",
@@ -75,11 +75,12 @@ def summarize_returns(returns: list[float]) -> EvalResult:
 
 
 def load_evaluation(run_dir: str | Path) -> EvalResult | None:
-    """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one."""
-    path = Path(run_dir) / "evaluation.json"
-    if not path.exists():
+    """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one;
+    the file is read as data (:func:`pporpe.run_files.read_evaluation`: ``ValueError``
+    naming it if it is not an evaluation)."""
+    if not (Path(run_dir) / "evaluation.json").exists():
         return None
-    return summarize_returns(json.loads(path.read_text())["returns"])
+    return summarize_returns(read_evaluation(run_dir)["returns"])
 
 
 def evaluate_policy(

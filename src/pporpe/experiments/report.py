@@ -27,11 +27,12 @@ and over tasks (:mod:`.batch_report`).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from ..io import atomic_savefig, atomic_write_text
+from ..run_files import read_grid
+from ..runs.links import refuse_links
 from .batch_report import write_batch_report
 from .batch_results import is_batch_grid
 from .report_figures import curve_figure, summary_figure
@@ -99,7 +100,7 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
     and the folder's hand-written ``notes.md`` (if any) at the top."""
     stats = statistics(cells) if stats is None else stats
-    grid = json.loads((root / "grid.json").read_text())
+    grid = read_grid(root)
     parts = report_head(root, grid)
     parts += [
         "## What ran\n",
@@ -118,12 +119,19 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     return "\n".join(parts)
 
 
+REPORT_FILES = ("REPORT.md", "summary.md", "summary.csv", "runs.csv",
+                *(f"fig_{name}.{ext}" for name in ("summary", "learning", "regularization",
+                  "aggregate") for ext in ("png", "pdf")))  # fmt: skip
+"""What a report writes into a grid's folder (checked first: never a symbolic link)."""
+
+
 def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
     """Write the summary table and figures into ``out`` (the grid's results folder); a grid
     of batch runs gets the batch report (:func:`.batch_report.write_batch_report`)."""
     if not (isinstance(smooth, int) and smooth >= 1):
         raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
     root = Path(out)
+    refuse_links(root, REPORT_FILES)  # before anything is written
     if (root / "grid.json").exists() and is_batch_grid(root):
         return write_batch_report(root, smooth)
     cells = load_results(root)
