@@ -416,7 +416,7 @@ _LEARNER: dict[str, dict[str, Callable[[Any], bool]]] = {
     },
 }
 """Fields of the learner's state that a policy is built from (the builders check the rest
-and name the file: :func:`pporpe.runs.folder.building_from`)."""
+and name the file: :func:`building_from`)."""
 
 
 def _a(word: str) -> str:
