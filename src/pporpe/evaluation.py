@@ -78,9 +78,14 @@ def load_evaluation(run_dir: str | Path) -> EvalResult | None:
     """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one;
     the file is read as data (:func:`pporpe.run_files.read_evaluation`: ``ValueError``
     naming it if it is not an evaluation)."""
-    if not (Path(run_dir) / "evaluation.json").exists():
+    path = Path(run_dir) / "evaluation.json"
+    if not path.exists():
         return None
-    return summarize_returns(read_evaluation(run_dir)["returns"])
+    stored = read_evaluation(run_dir)
+    if "returns" not in stored:
+        raise ValueError(f"{path}: it holds no returns (only their median); run pporpe "
+                         "evaluate on the folder again")  # fmt: skip
+    return summarize_returns(stored["returns"])
 
 
 def evaluate_policy(

@@ -215,12 +215,15 @@ def read_done(run_dir: str | Path) -> dict[str, Any]:
 
 
 def parse_evaluation(data: Any, path: str | Path) -> dict[str, Any]:
-    """The content of an ``evaluation.json`` checked against :data:`EVALUATION_FIELDS`:
-    ``returns`` required, ``episodes`` (when given) their count."""
+    """The content of an ``evaluation.json`` checked against :data:`EVALUATION_FIELDS`: the
+    ``returns`` or at least their ``median`` (what a report reads), ``episodes`` (when given
+    with the returns) their count."""
     remedy = "restore it, or run pporpe evaluate on the folder again"
     parsed = _parse_fields(data, EVALUATION_FIELDS, Path(path), remedy)
     if "returns" not in parsed:
-        raise ValueError(f"{path}: it holds no returns; {remedy}")
+        if "median" not in parsed:
+            raise ValueError(f"{path}: it holds neither returns nor their median; {remedy}")
+        return parsed
     if parsed.get("episodes", len(parsed["returns"])) != len(parsed["returns"]):
         raise ValueError(
             f"{path}: episodes={parsed['episodes']} but {len(parsed['returns'])} returns; {remedy}"
