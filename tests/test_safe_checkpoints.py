@@ -21,6 +21,7 @@ from tiny import tiny_grid_toml
 import pporpe
 from pporpe.experiments.grids.planning import plan_jobs
 from pporpe.experiments.grids.spec import load_spec
+from pporpe.runs.checkpoint_data import PPORPE_GLOBALS
 from pporpe.runs.folder import (
     CHECKPOINT,
     config_json,
@@ -209,3 +210,59 @@ def test_checkpoints_written_under_numpy_1_still_load(tmp_path: Path) -> None:
     rms, ref = got["learner"]["normalizer"]["obs_rms"], want["learner"]["normalizer"]["obs_rms"]
     assert isinstance(rms["mean"], np.ndarray) and np.array_equal(rms["mean"], ref["mean"])
     assert pporpe.load_policy(run).config == pporpe.load_policy(FIXTURES / "run_v0_1_batch").config
+
+
+class _Call:
+    """Pickles as ``func(*args)``: a call a crafted checkpoint may ask for."""
+
+    def __init__(self, func: Any, *args: Any) -> None:
+        self.func, self.args = func, args
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return self.func, self.args
+
+
+@pytest.mark.parametrize(
+    ("value", "says"),
+    [
+        (np.zeros(2, [("a", "f8"), ("b", "i4")]), "is not a safe checkpoint: it holds a numpy"),
+        (np.array(["text"]), "is not a safe checkpoint: it holds a numpy value of dtype"),
+        (_Call(bytearray, 1 << 30), "it would call builtins.bytearray"),
+        (_Call(bytes, 1 << 30), "it would call bytes(1073741824,)"),
+        ({1, 2}, "it would call builtins.set"),
+    ],
+    ids=["structured", "strings", "bytearray", "bytes(n)", "set"],
+)
+def test_what_no_run_state_holds_is_refused(tmp_path: Path, value: Any, says: str) -> None:
+    """The allow-list admits numbers only: no record, string or object dtype, no call of
+    ``bytes`` with a size, nothing outside ``PPORPE_GLOBALS`` (``bytearray``, sets)."""
+    assert "builtins.bytearray" not in PPORPE_GLOBALS and "builtins.bytes" in PPORPE_GLOBALS
+    torch.save({"records": [], "value": value}, tmp_path / CHECKPOINT)
+    with pytest.raises(ValueError) as info:
+        load_checkpoint(tmp_path)
+    assert says in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("dtype", ["?", "i1", "u2", "<i4", ">i8", "<f2", ">f4", "f8", "c8", "c16"])
+def test_arrays_of_every_number_type_and_byte_order_load_as_saved(
+    tmp_path: Path, dtype: str
+) -> None:
+    want = (np.arange(6) % 2 == 1 if dtype == "?" else np.arange(6)).astype(dtype).reshape(2, 3)
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "a": want, "s": want[0, 1]})
+    got = load_checkpoint(tmp_path)
+    assert got["a"].dtype == want.dtype and np.array_equal(got["a"], want)
+    assert type(got["s"]) is type(want[0, 1]) and got["s"] == want[0, 1]
+
+
+def test_a_compressed_checkpoint_is_refused_unread(tmp_path: Path) -> None:
+    """pporpe stores its checkpoints' entries uncompressed: a compressed one (a zip bomb
+    would be) is refused before anything is decompressed."""
+    save_checkpoint(tmp_path / CHECKPOINT, {"records": [], "a": np.zeros(1000)})
+    path = tmp_path / CHECKPOINT
+    with zipfile.ZipFile(path) as src:
+        entries = [(info.filename, src.read(info)) for info in src.infolist()]
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as dst:
+        for name, data in entries:
+            dst.writestr(name, data)
+    with pytest.raises(ValueError, match=r"cannot be read \(compressed entries"):
+        load_checkpoint(tmp_path)

@@ -131,7 +131,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     resolve_env_id(cfg.env)
     check_mujoco_gl(cfg.env)
     _check_task(cfg.env)  # before --force removes anything
-    if args.force:
+    if args.force:  # the new run's task builds, then the old run's files go (none via a link)
         from .runs.folder import clear_run_dir
 
         clear_run_dir(args.out)
@@ -219,6 +219,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     from .io import atomic_write_json
     from .runs.folder import read_config
+    from .runs.links import refuse_links
     from .runs.loop import load_policy
     from .text import count
 
@@ -232,6 +233,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if Path(args.video).exists() and not Path(args.video).is_dir():
             raise ValueError(f"--video must be a folder; {args.video} is a file")
     check_mujoco_gl(read_config(args.run_dir)[1].env)  # before MuJoCo is imported
+    refuse_links(args.run_dir, ["evaluation.json"])  # written at the end, never via a link
     policy = load_policy(args.run_dir)  # any learner kind, any pporpe version's folder
     cfg = policy.config
     seed = cfg.seed + EVAL_SEED_OFFSET if args.seed is None else args.seed

@@ -17,6 +17,7 @@ import dataclasses
 import math
 from typing import Any, Literal, TypeVar, get_args
 
+from .limits import MAX_HIDDEN_WEIGHTS, MAX_LAYERS, MAX_UNITS, check_int_in, short_repr
 from .surrogates import METHODS, Method, RPEForm, check_surrogate_params
 
 __all__ = [
@@ -65,14 +66,21 @@ MAX_SEED = 2**32 - 1
 
 
 def require(cond: bool, name: str, value: object, allowed: str) -> None:
-    """Raise ``ValueError("<name> must be <allowed>; got <name>=<value>")`` unless ``cond``."""
+    """Raise ``ValueError("<name> must be <allowed>; got <name>=<value>")`` unless ``cond``
+    (a long value cut short: :func:`~pporpe.limits.short_repr`)."""
     if not cond:
-        raise ValueError(f"{name} must be {allowed}; got {name}={value!r}")
+        raise ValueError(f"{name} must be {allowed}; got {name}={short_repr(value)}")
 
 
 def is_real(x: object) -> bool:
-    """A real number: an int or float, not a bool, not NaN (infinities allowed)."""
-    return isinstance(x, int | float) and not isinstance(x, bool) and not math.isnan(x)
+    """A real number: an int or float, not a bool, not NaN (infinities allowed); an int too
+    large for a float (over 10**308) is not one."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return not math.isnan(x)
+    except OverflowError:
+        return False
 
 
 def is_int(x: object) -> bool:
@@ -83,8 +91,8 @@ def is_int(x: object) -> bool:
 def check_real(name: str, value: Any, lo: float, hi: float, lo_open: bool, hi_open: bool) -> None:
     """Raise ValueError unless ``value`` is a real number in the given interval."""
     interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{name} must be a real number in {interval}, got {value!r}")
+    if not is_real(value) and not (isinstance(value, float) and math.isnan(value)):
+        raise ValueError(f"{name} must be a real number in {interval}, got {short_repr(value)}")
     v = float(value)
     ok = not math.isnan(v) and (v > lo if lo_open else v >= lo)
     ok = ok and (v < hi if hi_open else v <= hi)
@@ -117,10 +125,17 @@ def validate_surrogate_fields(cfg: Any) -> None:
 
 
 def validate_network_fields(cfg: Any) -> None:
-    """Validate the network fields the learner configs share: layers, units, activation,
-    policy."""
-    require(is_int(cfg.layers) and cfg.layers >= 1, "layers", cfg.layers, "an int >= 1")
-    require(is_int(cfg.units) and cfg.units >= 1, "units", cfg.units, "an int >= 1")
+    """Validate the network fields the learner configs share: layers, units (each within
+    :mod:`pporpe.limits`, and units * units * layers too), activation, policy."""
+    check_int_in("layers", cfg.layers, 1, MAX_LAYERS)
+    check_int_in("units", cfg.units, 1, MAX_UNITS)
+    weights = cfg.units * cfg.units * cfg.layers
+    require(
+        weights <= MAX_HIDDEN_WEIGHTS,
+        "units * units * layers",
+        weights,
+        f"at most {MAX_HIDDEN_WEIGHTS:,} (pporpe.limits.MAX_HIDDEN_WEIGHTS)",
+    )
     require(
         cfg.activation in ACTIVATIONS, "activation", cfg.activation, f"one of {list(ACTIVATIONS)}"
     )

@@ -7,7 +7,6 @@ with the policy's location (no sampling).
 from __future__ import annotations
 
 import contextlib
-import json
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -17,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .envs import make_env, resolve_env_id
+from .run_files import read_evaluation
 
 __all__ = [
     "EVAL_SEED_OFFSET",
@@ -79,11 +79,17 @@ def summarize_returns(returns: list[float]) -> EvalResult:
 
 
 def load_evaluation(run_dir: str | Path) -> EvalResult | None:
-    """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one."""
+    """The test-episode summary saved in ``run_dir/evaluation.json``, or None without one;
+    the file is read as data (:func:`pporpe.run_files.read_evaluation`: ``ValueError``
+    naming it if it is not an evaluation)."""
     path = Path(run_dir) / "evaluation.json"
     if not path.exists():
         return None
-    return summarize_returns(json.loads(path.read_text())["returns"])
+    stored = read_evaluation(run_dir)
+    if "returns" not in stored:
+        raise ValueError(f"{path}: it holds no returns (only their median); run pporpe "
+                         "evaluate on the folder again")  # fmt: skip
+    return summarize_returns(stored["returns"])
 
 
 def evaluate_policy(

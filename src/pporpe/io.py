@@ -21,9 +21,16 @@ __all__ = ["atomic_path", "atomic_savefig", "atomic_write_json", "atomic_write_t
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success fsync it and rename it onto ``path``.
 
-    On an exception the temporary file is removed and ``path`` is left untouched.
+    On an exception the temporary file is removed and ``path`` is left untouched. A ``path``
+    that is a symbolic link is refused (``ValueError``) before anything is written: a file
+    pporpe writes never replaces a link, which may be someone's on purpose.
     """
     target = Path(path)
+    if target.is_symlink():
+        raise ValueError(
+            f"{target} is a symbolic link; pporpe does not write over links: remove it, or "
+            "write elsewhere"
+        )
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
     os.close(fd)

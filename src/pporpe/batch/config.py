@@ -19,6 +19,15 @@ from ..config import (
     validate_surrogate_fields,
 )
 from ..envs import ALIASES
+from ..limits import (
+    MAX_EVAL_EPISODES,
+    MAX_N_ENVS,
+    MAX_N_EPOCHS,
+    MAX_ROLLOUT,
+    MAX_SEED,
+    MAX_STEPS,
+    check_int_in,
+)
 
 __all__ = [
     "ZOO_DEFAULTS",
@@ -57,22 +66,24 @@ class BatchConfig:
     """Surrogate: ``"ppo"`` (clip), ``"rb"`` (rollback), ``"rpe"`` (relative Pearson) or
     ``"spo"`` (Simple Policy Optimization, eps only)."""
     seed: int = 0
-    """Seed of the networks, the sampling and the environments (sub-env i gets seed + i), >= 0."""
+    """Seed of the networks, the sampling and the environments (sub-env i gets seed + i), in
+    [0, 2**32 - 1] (:data:`~pporpe.limits.MAX_SEED`)."""
     total_steps: int = 1_000_000
-    """Training length in environment steps over all sub-environments, >= 1 (rounded up to
-    whole rollouts of n_envs * n_steps)."""
+    """Training length in environment steps over all sub-environments, in [1, 10**9]
+    (rounded up to whole rollouts of n_envs * n_steps)."""
     n_envs: int = 1
-    """Number of parallel sub-environments, >= 1."""
+    """Number of parallel sub-environments, in [1, 1024]."""
     vec_env: VecEnvKind = "sync"
     """``"sync"`` (:class:`gymnasium.vector.SyncVectorEnv`, one process) or ``"async"``
     (:class:`gymnasium.vector.AsyncVectorEnv`, one process per sub-environment)."""
     n_steps: int = 2048
-    """Steps per sub-environment in one rollout, >= 1."""
+    """Steps per sub-environment in one rollout, >= 1, with n_envs * n_steps at most 2**20
+    (:data:`~pporpe.limits.MAX_ROLLOUT`)."""
     batch_size: int = 64
     """Minibatch size, in [1, n_envs * n_steps]; the last minibatch of an epoch is smaller
     when it does not divide the rollout."""
     n_epochs: int = 10
-    """Passes over each rollout, >= 1."""
+    """Passes over each rollout, in [1, 10**4]."""
     gamma: float = 0.99
     """Discount factor, in [0, 1)."""
     gae_lambda: float = 0.95
@@ -133,9 +144,10 @@ class BatchConfig:
     paper's :class:`~pporpe.nn.policies.ActionMap` (low + (high-low)*sigmoid(u)). Ratios use
     the density of u in both cases."""
     layers: int = 2
-    """Hidden layers of each network (policy and value), >= 1."""
+    """Hidden layers of each network (policy and value), in [1, 64]."""
     units: int = 64
-    """Units per hidden layer, >= 1."""
+    """Units per hidden layer, in [1, 4096], with units * units * layers at most 2**24
+    (:mod:`pporpe.limits`)."""
     activation: Activation = "tanh"
     """Hidden activation: ``"tanh"``, ``"relu"`` or ``"swish"``."""
     layer_norm: bool = False
@@ -147,7 +159,7 @@ class BatchConfig:
     """Updates between two checkpoints (>= 1); also one at the end, and by time whatever
     the count (after an update): 30 s into training, 1 min later, then every 2 min."""
     eval_episodes: int = 50
-    """Test episodes after training (>= 0; the paper's score is the median of 50)."""
+    """Test episodes after training, in [0, 10**4] (the paper's score is the median of 50)."""
 
     def __post_init__(self) -> None:
         self._check_run_fields()
@@ -161,22 +173,24 @@ class BatchConfig:
         validate_surrogate_fields(self)
         for name in ("gamma", "gae_lambda", "lr", "adam_eps"):
             require(is_real(getattr(self, name)), name, getattr(self, name), "a number")
-        require(is_int(self.seed) and self.seed >= 0, "seed", self.seed, "an int >= 0")
-        for name in ("total_steps", "n_envs", "n_steps", "n_epochs", "checkpoint_every"):
-            v = getattr(self, name)
-            require(is_int(v) and v >= 1, name, v, "an int >= 1")
+        check_int_in("seed", self.seed, 0, MAX_SEED)
+        for name, most in (("total_steps", MAX_STEPS), ("n_envs", MAX_N_ENVS),
+                           ("n_steps", MAX_ROLLOUT), ("n_epochs", MAX_N_EPOCHS),
+                           ("checkpoint_every", MAX_STEPS)):  # fmt: skip
+            check_int_in(name, getattr(self, name), 1, most)
+        require(
+            self.rollout_size <= MAX_ROLLOUT,
+            "n_envs * n_steps",
+            self.rollout_size,
+            f"at most {MAX_ROLLOUT:,} (pporpe.limits.MAX_ROLLOUT)",
+        )
         require(
             is_int(self.batch_size) and 1 <= self.batch_size <= self.rollout_size,
             "batch_size",
             self.batch_size,
             f"an int in [1, n_envs * n_steps = {self.rollout_size}]",
         )
-        require(
-            is_int(self.eval_episodes) and self.eval_episodes >= 0,
-            "eval_episodes",
-            self.eval_episodes,
-            "an int >= 0",
-        )
+        check_int_in("eval_episodes", self.eval_episodes, 0, MAX_EVAL_EPISODES)
         require(self.vec_env in get_args(VecEnvKind), "vec_env", self.vec_env, "'sync' or 'async'")
 
     def _check_optimiser_fields(self) -> None:

@@ -16,7 +16,8 @@ import torch
 
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy
 from ..policy import Policy
-from ..runs.folder import load_checkpoint, read_config
+from ..runs.checkpoint_data import building_from
+from ..runs.folder import CHECKPOINT, load_run_state, read_config
 from ..runs.kinds import (
     Episode,
     NonFiniteError,
@@ -369,11 +370,12 @@ def load_batch_learner(
     kind, cfg = read_config(run_dir)
     if kind.name != "batch":
         raise ValueError(f"{run_dir} holds a run of kind {kind.name!r}, not 'batch'")
-    state = load_checkpoint(run_dir)
-    if not build_envs:
-        return cfg, _policy_learner(cfg, state)
-    learner = BatchLearner(cfg)
-    learner.load_state_dict(state["learner"])
+    state = load_run_state(run_dir, "batch")
+    with building_from(Path(run_dir) / CHECKPOINT):
+        if not build_envs:
+            return cfg, _policy_learner(cfg, state)
+        learner = BatchLearner(cfg)
+        learner.load_state_dict(state["learner"])
     return cfg, learner
 
 

@@ -14,12 +14,12 @@ from ..config import (
     Method,
     PolicyKind,
     RPEForm,
-    is_int,
     is_real,
     require,
     validate_network_fields,
     validate_surrogate_fields,
 )
+from ..limits import MAX_EPISODES, MAX_EVAL_EPISODES, MAX_SEED, MAX_STEPS, check_int_in
 
 __all__ = [
     "AMSGRAD_MAXES",
@@ -267,9 +267,10 @@ class OnlineConfig:
     reward_scale: float | None = None
     """Multiplier of rewards; ``None`` means 1 - gamma (the author's test bed)."""
     layers: int = 5
-    """Hidden layers L of each network, >= 1."""
+    """Hidden layers L of each network, in [1, 64]."""
     units: int = 100
-    """Units N per hidden layer, >= 1."""
+    """Units N per hidden layer, in [1, 4096], with units * units * layers at most 2**24
+    (:mod:`pporpe.limits`)."""
     layer_norm: bool = True
     """LayerNorm after each hidden linear layer."""
     layer_norm_affine: bool = False
@@ -378,22 +379,25 @@ class TrainConfig:
     env: str = "pendulum"
     """Task: an alias (pendulum, swingup, halfcheetah, ant) or a Gymnasium id with Box actions."""
     seed: int = 0
-    """Seed of the networks, the sampling and the environment, >= 0."""
+    """Seed of the networks, the sampling and the environment, in [0, 2**32 - 1]
+    (:data:`~pporpe.limits.MAX_SEED`)."""
     episodes: int | None = 200
-    """Training length in episodes (>= 1); ``None`` when ``steps`` sets it."""
+    """Training length in episodes, in [1, 10**6] (:data:`~pporpe.limits.MAX_EPISODES`);
+    ``None`` when ``steps`` sets it."""
     steps: int | None = None
-    """Training length in environment steps (>= 1); ``None`` when ``episodes`` sets it."""
+    """Training length in environment steps, in [1, 10**9]
+    (:data:`~pporpe.limits.MAX_STEPS`); ``None`` when ``episodes`` sets it."""
     checkpoint_every: int = 10
     """Episodes between two checkpoints (>= 1); also one at the end, and by time whatever
     the count (mid-episode): 30 s into training, 1 min later, then every 2 min."""
     eval_episodes: int = 50
-    """Test episodes after training (>= 0; the paper's score is the median of 50)."""
+    """Test episodes after training, in [0, 10**4] (the paper's score is the median of 50)."""
     learner: OnlineConfig = field(default_factory=OnlineConfig)
     """Settings of the online learner."""
 
     def __post_init__(self) -> None:
         require(isinstance(self.env, str) and bool(self.env), "env", self.env, "a task name")
-        require(is_int(self.seed) and self.seed >= 0, "seed", self.seed, "an int >= 0")
+        check_int_in("seed", self.seed, 0, MAX_SEED)
         require(
             (self.episodes is None) != (self.steps is None),
             "episodes/steps",
@@ -401,24 +405,9 @@ class TrainConfig:
             "exactly one of the two set",
         )
         if self.episodes is not None:
-            require(
-                is_int(self.episodes) and self.episodes >= 1,
-                "episodes",
-                self.episodes,
-                "an int >= 1",
-            )
+            check_int_in("episodes", self.episodes, 1, MAX_EPISODES)
         if self.steps is not None:
-            require(is_int(self.steps) and self.steps >= 1, "steps", self.steps, "an int >= 1")
-        require(
-            is_int(self.checkpoint_every) and self.checkpoint_every >= 1,
-            "checkpoint_every",
-            self.checkpoint_every,
-            "an int >= 1",
-        )
-        require(
-            is_int(self.eval_episodes) and self.eval_episodes >= 0,
-            "eval_episodes",
-            self.eval_episodes,
-            "an int >= 0",
-        )
+            check_int_in("steps", self.steps, 1, MAX_STEPS)
+        check_int_in("checkpoint_every", self.checkpoint_every, 1, MAX_STEPS)
+        check_int_in("eval_episodes", self.eval_episodes, 0, MAX_EVAL_EPISODES)
         require(isinstance(self.learner, OnlineConfig), "learner", self.learner, "an OnlineConfig")

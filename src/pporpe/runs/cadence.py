@@ -30,6 +30,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..run_files import read_json
+
 __all__ = [
     "CHECKPOINT_WITHIN_S",
     "LIVE_FILE",
@@ -87,10 +89,15 @@ class CheckpointClock:
 
 def _write_quietly(path: Path, data: dict[str, Any]) -> None:
     """Write ``data`` as JSON through a temporary file and a rename (no fsync: the file is
-    a hint, rewritten every few seconds), never raising for a full or vanished disk."""
+    a hint, rewritten every few seconds), never raising for a full or vanished disk, never
+    through a symbolic link."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(data))
+        if path.is_symlink():
+            return
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0)
+        with os.fdopen(os.open(tmp, flags, 0o666), "w") as fh:
+            fh.write(json.dumps(data))
         os.replace(tmp, path)
     except OSError:
         tmp.unlink(missing_ok=True)
@@ -130,7 +137,7 @@ def read_live(run: Path, since: float) -> dict[str, Any] | None:
     an earlier call of the loop may be ahead of the checkpoint the run resumes from), with
     ``episodes`` and ``total_steps`` as ints and ``lengths`` a list of numbers; else None."""
     try:
-        data = json.loads((run / LIVE_FILE).read_text())
+        data = read_json(run / LIVE_FILE)
         if float(data["time"]) < since:
             return None
         return {
@@ -138,5 +145,5 @@ def read_live(run: Path, since: float) -> dict[str, Any] | None:
             "total_steps": int(data["total_steps"]),
             "lengths": [float(x) for x in data["lengths"]],
         }
-    except (OSError, ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, OverflowError):
         return None

@@ -17,8 +17,6 @@ run: :mod:`pporpe.runs.migrate` upgrades what they hold.
 
 from __future__ import annotations
 
-import json
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +24,11 @@ import torch
 
 from ..config import config_from_dict, config_to_dict
 from ..io import atomic_path, atomic_write_json
+from ..run_files import check_folder_env, read_json
 from .cadence import LIVE_FILE
+from .checkpoint_data import NotData, Unreadable, check_run_state, load_data, scan_checkpoint
 from .kinds import LearnerKind, get_kind
+from .links import RUN_WRITES, clear_run_files, refuse_links
 from .migrate import upgrade_config
 
 __all__ = [
@@ -37,6 +38,7 @@ __all__ = [
     "clear_run_dir",
     "config_json",
     "load_checkpoint",
+    "load_run_state",
     "open_run_dir",
     "read_config",
     "same_run_config",
@@ -70,13 +72,9 @@ def same_run_config(a: dict[str, Any], b: dict[str, Any]) -> bool:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    """A run file's JSON object, or a ValueError that names the file and what to do."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(
-            f"{path} cannot be read ({exc}); restore it, or use another --out folder"
-        ) from None
+    """A run file's JSON object, read as data (:func:`pporpe.run_files.read_json`: bounded
+    size and nesting), or a ValueError that names the file and what to do."""
+    data = read_json(path, "restore it, or use another --out folder")
     if not isinstance(data, dict):
         raise ValueError(f"{path} does not hold a JSON object; restore it, or use another --out")
     return data
@@ -95,20 +93,30 @@ def _differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list
 
 
 def read_config(run_dir: str | Path) -> tuple[LearnerKind, Any]:
-    """The learner kind and run configuration saved in ``run_dir/config.json``."""
+    """The learner kind and run configuration saved in ``run_dir/config.json``, read as
+    data: every setting checked by the run config (types, ranges and the bounds of
+    :mod:`pporpe.limits`) and the task resolved among the registered ones, never imported
+    (:func:`pporpe.run_files.check_folder_env`). ``ValueError`` naming the file otherwise."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder (it has no config.json)")
     data = upgrade_config(_read_json(path))
-    kind = get_kind(data.pop("kind"))
-    return kind, config_from_dict(kind.config_type, data, str(path))
+    try:
+        kind = get_kind(data.pop("kind"))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    cfg: Any = config_from_dict(kind.config_type, data, str(path))
+    check_folder_env(cfg.env, str(path))
+    return kind, cfg
 
 
 def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, bool]:
     """Create a run folder and write ``config.json`` first, or check that it matches.
 
     Returns the folder and whether the run is complete (``done.json`` exists). A folder
-    that holds a run with a different config is refused, so results are never mixed.
+    that holds a run with a different config is refused, so results are never mixed, and
+    so is one where a name the run writes is a symbolic link
+    (:func:`~pporpe.runs.links.refuse_links`), before anything is written.
     Configs are compared as parsed settings: a field added by a later pporpe version, at
     its default, is the same run as the folder's.
     """
@@ -119,6 +127,7 @@ def open_run_dir(run_dir: str | Path, config: dict[str, Any]) -> tuple[Path, boo
         run.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ValueError(f"cannot create the run folder {run}: {exc.strerror}") from None
+    refuse_links(run, RUN_WRITES)
     path = run / "config.json"
     if not path.exists():
         atomic_write_json(path, config)
@@ -147,24 +156,19 @@ def _refuse_another_kind(run: Path, saved: Any, wanted: Any) -> None:
         )
 
 
-RUN_FILES = ("config.json", CHECKPOINT, "episodes.csv", "evaluation.json", "done.json",
-             "error.txt", "tensorboard", LIVE_FILE)  # fmt: skip
+RUN_FILES = ("config.json", CHECKPOINT, "episodes.csv", "updates.csv", "evaluation.json",
+             "done.json", "error.txt", "tensorboard", LIVE_FILE)  # fmt: skip
 """What a run writes into its folder (``--force`` removes these, and nothing else)."""
 
 
 def clear_run_dir(run_dir: str | Path) -> None:
-    """Remove a run's files from its folder, so that a new run can start there."""
-    import shutil
-
+    """Remove a run's files from its folder, so that a new run can start there: first
+    checked, then removed (:func:`~pporpe.runs.links.clear_run_files`); a symbolic link
+    among them, or a file that cannot be removed, is ``ValueError`` naming it and nothing
+    is removed."""
     run = Path(run_dir)
-    if not run.is_dir():
-        return
-    for name in RUN_FILES:
-        target = run / name
-        if target.is_dir():
-            shutil.rmtree(target)
-        else:
-            target.unlink(missing_ok=True)
+    if run.is_dir():
+        clear_run_files(run, RUN_FILES)
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -179,88 +183,70 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         tmp.write_bytes(buf.getbuffer())
 
 
-def _allowed_globals() -> list[Any]:
-    """What a pporpe checkpoint holds besides tensors and plain values (dicts, lists,
-    numbers, strings, None), for ``torch.load(weights_only=True)``: numpy arrays and scalars
-    of numbers and their dtypes (a batch run's observation statistics, an online run's last
-    action and episode replay record). Not numpy's object arrays, nor anything that runs
-    code. Checkpoints written under numpy 1.x spell numpy's functions ``numpy.core``."""
-    import numpy as np
-
-    reconstruct = np.zeros(1).__reduce__()[0]  # numpy._core.multiarray._reconstruct
-    scalar = np.float64(0.0).__reduce__()[0]  # numpy._core.multiarray.scalar
-    dtypes = dict.fromkeys(type(np.dtype(code)) for code in "?bBhHiIlLqQefdgFDG")
-    return [
-        bytes,  # an empty array's data: protocol 2 pickles b"" as bytes()
-        np.ndarray, np.dtype, reconstruct, scalar, *dtypes,
-        (reconstruct, "numpy.core.multiarray._reconstruct"),
-        (scalar, "numpy.core.multiarray.scalar"),
-    ]  # fmt: skip
-
-
-_TORCH_BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation")
-"""The lines of torch's refusal of a global that are about torch, not about the file."""
-_CODE_REFUSALS = ("GLOBAL", "Can only build", "Can only create new object")
-"""What ``torch.load(weights_only=True)`` says when a file would import or build more than
-data (other refusals are of a torn or foreign file)."""
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    reason = [ln for ln in lines if not ln.startswith(_TORCH_BOILERPLATE)] or lines or [""]
-    return f"{type(exc).__name__}: {reason[0][:200]}"
-
-
 def _unsafe(path: Path, what: str) -> ValueError:
     return ValueError(
         f"{path} is not a safe checkpoint: {what}, and a pporpe checkpoint holds only data; "
-        "it was not opened (nothing in it ran). Delete it if you did not write it (the run "
-        "then starts over without it)"
+        "nothing in it ran. Delete it if you did not write it (the run then starts over "
+        "without it)"
+    )
+
+
+def _cannot_read(path: Path, reason: str) -> ValueError:
+    return ValueError(
+        f"{path} cannot be read ({reason}); it was not changed. Restore it from a copy, or "
+        "use --force to start the run over"
     )
 
 
 def check_checkpoint(path: str | Path) -> None:
-    """Refuse a checkpoint that would import or call anything besides tensors, plain values
-    and numpy arrays (:func:`_allowed_globals`), reading its pickle without running it.
+    """Refuse, without reading its pickle, a checkpoint that is not a regular torch zip
+    file of stored entries or whose pickle names anything besides tensors, plain values
+    and numpy's number arrays (:func:`pporpe.runs.checkpoint_data.scan_checkpoint`).
 
-    Raises ``ValueError`` naming the file and what it would call (a checkpoint that is not
-    a readable torch file at all is left to :func:`load_checkpoint`)."""
+    Raises ``ValueError`` naming the file, and what it would call."""
     path = Path(path)
     try:
-        with torch.serialization.safe_globals(_allowed_globals()):
-            foreign = torch.serialization.get_unsafe_globals_in_checkpoint(path)
-    except Exception:  # not a zip checkpoint: torch.load(weights_only=True) refuses code
-        return
-    if foreign:
-        raise _unsafe(path, f"it would call {', '.join(sorted(foreign))}")
+        scan_checkpoint(path, lambda what: _unsafe(path, what))
+    except Unreadable as exc:
+        raise _cannot_read(path, str(exc)) from None
 
 
 def load_checkpoint(run_dir: str | Path) -> dict[str, Any]:
-    """The checkpoint of a run folder, read with ``torch.load(weights_only=True)``: tensors,
-    plain values and numpy arrays only, never code (:func:`check_checkpoint`).
+    """The checkpoint of a run folder (or of a population's home folder), read as data
+    (:mod:`pporpe.runs.checkpoint_data`): tensors, plain values and numpy arrays and scalars
+    of number types, never code, never an object array.
 
-    ``ValueError`` if it has none, if it is corrupt, or if it would run code; the file is
-    left as it is."""
+    ``ValueError`` naming the file if it has none, if it is corrupt, if it would run code
+    or holds anything else, or if it is no pporpe checkpoint; the file is left as it is."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise ValueError(f"{Path(run_dir)} is not a run folder with a checkpoint ({CHECKPOINT})")
     check_checkpoint(path)
     try:
-        with torch.serialization.safe_globals(_allowed_globals()):
-            state = torch.load(path, weights_only=True)
-    except pickle.UnpicklingError as exc:
-        if any(word in str(exc) for word in _CODE_REFUSALS):  # code, in a pre-zip file
-            raise _unsafe(path, f"torch refused it ({_first_line(exc)})") from None
-        raise _unreadable(path, exc) from None
-    except Exception as exc:  # a torn or foreign file: zip or EOF errors
+        state = load_data(path)
+    except NotData as exc:
+        raise _unsafe(path, str(exc)) from None
+    except Exception as exc:  # a torn or foreign file: zip or EOF errors, memory
         raise _unreadable(path, exc) from None
     if not isinstance(state, dict) or not ("records" in state or "members" in state):
         raise ValueError(f"{path} is not a pporpe checkpoint; restore it or use --force")
     return state
 
 
+_TORCH_BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation")
+"""The lines of torch's refusals that are about torch, not about the file."""
+
+
+def load_run_state(run_dir: str | Path, kind: str) -> dict[str, Any]:
+    """The checkpoint of a run folder (:func:`load_checkpoint`) checked to be a run state
+    of learner kind ``kind`` (:func:`pporpe.runs.checkpoint_data.check_run_state`): its
+    records, counters and learner, of that kind; ``ValueError`` naming the file otherwise."""
+    state = load_checkpoint(run_dir)
+    check_run_state(state, Path(run_dir) / CHECKPOINT, kind)
+    return state
+
+
 def _unreadable(path: Path, exc: BaseException) -> ValueError:
-    return ValueError(
-        f"{path} cannot be read ({_first_line(exc)}); "
-        "it was not changed. Restore it from a copy, or use --force to start the run over"
-    )
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    reason = [ln for ln in lines if not ln.startswith(_TORCH_BOILERPLATE)] or lines or [""]
+    return _cannot_read(path, f"{type(exc).__name__}: {reason[0][:200]}")

@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from ..io import atomic_write_text
+from ..limits import MAX_CSV_BYTES
+from ..run_files import read_regular_file
 from .kinds import SurrogateDiagnostics
 
 T = TypeVar("T")
@@ -125,7 +127,16 @@ def _cell(name: str, text: str | None) -> int | float | None:
         raise ValueError(f"the row has no {name} cell")
     if text == "" and name in _DIAGNOSTIC_COLUMNS:
         return None
-    return int(text) if name in _INT_COLUMNS else float(text)
+    return _count(text) if name in _INT_COLUMNS else float(text)
+
+
+def _count(text: str) -> int:
+    """An int cell: in [0, 2**62] (a count of episodes or steps; the report turns it into
+    a float)."""
+    value = int(text)
+    if not 0 <= value <= 2**62:
+        raise ValueError(f"a count out of range: {text[:30]}")
+    return value
 
 
 def read_records(path: str | Path) -> list[EpisodeRecord]:
@@ -145,14 +156,16 @@ def read_records(path: str | Path) -> list[EpisodeRecord]:
 
 def _read_rows(path: str | Path, what: str, parse: Callable[[dict[str, str]], T]) -> list[T]:
     """Every row of the CSV file ``path`` read by ``parse``; ``ValueError`` naming the file
-    as not readable as ``what`` (missing, torn, a missing column, a cell that is no number)."""
+    as not readable as ``what`` (missing, torn, not a regular file, larger than
+    :data:`~pporpe.limits.MAX_CSV_BYTES`, a missing column, a cell that is no number)."""
+    remedy = "a resumed run rewrites it from its checkpoint"
+    raw = read_regular_file(path, MAX_CSV_BYTES, remedy)
     try:
-        with open(path, newline="") as fh:
-            return [parse(row) for row in csv.DictReader(fh)]
-    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
+        text = raw.decode("utf-8")
+        return [parse(row) for row in csv.DictReader(io.StringIO(text, newline=""))]
+    except (UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise ValueError(
-            f"{path} cannot be read as an {what} ({type(exc).__name__}: {exc}); "
-            "a resumed run rewrites it from its checkpoint"
+            f"{path} cannot be read as an {what} ({type(exc).__name__}: {exc}); {remedy}"
         ) from None
 
 
@@ -186,7 +199,8 @@ class LoggedUpdate:
     def from_row(cls, row: Mapping[str, Any]) -> LoggedUpdate:
         """The update of a flat row (:meth:`row`, or a row of ``updates.csv``)."""
         values = {k: float(v) for k, v in row.items() if k not in (*UPDATE_COLUMNS, "wall_time")}
-        return cls(int(row["update"]), int(row["total_steps"]), values, float(row["wall_time"]))
+        update, steps = (_count(str(row[k])) for k in UPDATE_COLUMNS)
+        return cls(update, steps, values, float(row["wall_time"]))
 
 
 def updates_to_csv(updates: list[LoggedUpdate]) -> str:

@@ -29,11 +29,10 @@ records never have a gap or a duplicate.
 
 from __future__ import annotations
 
-import json
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,13 +43,15 @@ from ..envs import make_env
 from ..evaluation import EVAL_SEED_OFFSET, EvalResult, evaluate_policy, load_evaluation
 from ..io import atomic_write_json, atomic_write_text
 from ..policy import Policy
+from ..run_files import read_done
 from .active_run import ActiveRun
 from .cadence import CHECKPOINT_WITHIN_S, RECENT_EPISODES, CheckpointClock, LiveProgress
+from .checkpoint_data import building_from, check_run_state
 from .folder import (
     CHECKPOINT,
     check_checkpoint,
     config_json,
-    load_checkpoint,
+    load_run_state,
     open_run_dir,
     read_config,
 )
@@ -102,7 +103,7 @@ training seconds so far; its own time is not counted as training time."""
 
 def _finished_result(run: Path) -> RunResult:
     records = read_records(run / "episodes.csv")
-    done = json.loads((run / "done.json").read_text())
+    done = read_done(run)
     chunks = int(done.get("chunks", done.get("updates", done.get("episodes", len(records)))))
     return RunResult(
         run,
@@ -176,14 +177,19 @@ class _Queue:
         """Start run ``i`` in ``slot``: fresh, or from its state, the population's or its own
         (the more advanced: :func:`~.population_checkpoint.progress_of`)."""
         run = self.dirs[i]
+        source = run_checkpoint = run / CHECKPOINT
         state = self.members.pop(self.names[i], None)
-        if (run / CHECKPOINT).exists():
-            own = load_checkpoint(run)
+        if state is not None and self.population is not None:
+            source = self.population.file
+            check_run_state(state, source, self.kind.name)
+        if run_checkpoint.exists():
+            own = load_run_state(run, self.kind.name)
             if state is None or progress_of(own) > progress_of(state):
-                state = own
+                state, source = own, run_checkpoint
+        with building_from(source) if state is not None else nullcontext():
+            self.trainer.start(slot, self.cfgs[i], state)
         bar = self.hooks.progress and len(self.slots) == 1
         book = ActiveRun(self.kind, self.cfgs[i], run, bar=bar)
-        self.trainer.start(slot, self.cfgs[i], state)
         book.resume(state, self.trainer, slot)
         (run / "error.txt").unlink(missing_ok=True)
         self.books[slot] = book
@@ -573,4 +579,5 @@ def load_policy(run_dir: str | Path) -> Policy:
         ValueError: not a run folder, or a corrupt config or checkpoint.
     """
     kind, cfg = read_config(run_dir)
-    return kind.load_policy(cfg, load_checkpoint(run_dir))
+    with building_from(Path(run_dir) / CHECKPOINT):
+        return kind.load_policy(cfg, load_run_state(run_dir, kind.name))

@@ -21,7 +21,6 @@ checkpoints of old homes whose runs have all finished since (:func:`discard_fini
 
 from __future__ import annotations
 
-import json
 import os
 from collections import deque
 from collections.abc import Collection
@@ -30,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from ..io import atomic_write_json
+from ..run_files import read_json
+from .checkpoint_data import check_population_state
 from .folder import CHECKPOINT, load_checkpoint, save_checkpoint
 from .migrate import packing_names
 
@@ -87,6 +88,7 @@ class PopulationCheckpoint:
         if not self.file.is_file():
             return None, {}
         saved = load_checkpoint(self.file.parent)
+        check_population_state(saved, self.file)
         spelling = packing_names(saved.get("runs"), self.names, self._full_paths)
         if spelling is None:
             ours = {self.names[i] for i in pending}
@@ -128,7 +130,9 @@ def progress_of(state: dict[str, Any]) -> tuple[int, int]:
     """How far a run's saved state has come: its logged episodes, then its logged updates.
     Every learner kind's checkpoint holds both lists, and they only grow, so of two states
     of one run the larger is the later."""
-    return len(state.get("records", ())), len(state.get("updates", ()))
+    records, updates = state.get("records"), state.get("updates")
+    return (len(records) if isinstance(records, list) else 0,
+            len(updates) if isinstance(updates, list) else 0)  # fmt: skip
 
 
 def adopt_orphaned_states(
@@ -152,7 +156,9 @@ def adopt_orphaned_states(
     for home in sorted(populations.iterdir()):
         if home.resolve() in planned or not (home / CHECKPOINT).is_file():
             continue
-        for name, state in load_checkpoint(home).get("members", {}).items():
+        saved = load_checkpoint(home)
+        check_population_state(saved, home / CHECKPOINT, packing=False)
+        for name, state in saved["members"].items():
             run = (home / name).resolve()
             if run in wanted and (run not in best or progress_of(state) > progress_of(best[run])):
                 best[run] = state
@@ -178,8 +184,8 @@ def finished_homes(populations: Path) -> list[Path]:
         if not (home / CHECKPOINT).is_file():
             continue
         try:
-            runs = json.loads((home / POPULATION_FILE).read_text(encoding="utf-8"))["runs"]
-        except (OSError, ValueError, KeyError, TypeError):
+            runs = read_json(home / POPULATION_FILE)["runs"]
+        except (ValueError, KeyError, TypeError):
             continue
         if (
             isinstance(runs, list)

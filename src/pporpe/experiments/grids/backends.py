@@ -48,7 +48,8 @@ on Ctrl-C; None elsewhere."""
 @contextlib.contextmanager
 def _run_lock(run_dir: Path) -> Iterator[None]:
     run_dir.mkdir(parents=True, exist_ok=True)
-    with open(run_dir / ".lock", "w") as fh:
+    flags = os.O_WRONLY | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never through a link
+    with os.fdopen(os.open(run_dir / ".lock", flags, 0o666), "w") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield

@@ -10,11 +10,12 @@ A call that changes neither leaves both files as they are, byte for byte.
 
 from __future__ import annotations
 
-import json
+import math
 from pathlib import Path
 from typing import Any
 
 from ...io import atomic_write_json
+from ...run_files import parse_grid, read_json
 from ...runs.folder import same_run_config
 from ...runs.kinds import kind_of
 from .spec import GridSpec, spec_summary
@@ -27,12 +28,10 @@ def _read_summary(path: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        old = json.loads(path.read_text())
-        if not all(isinstance(r["key"], str) for r in old["runs"]):
-            raise ValueError("a run's key is not a string")
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: not a grid summary written by pporpe ({exc})") from None
-    return dict(old)
+        return dict(parse_grid(read_json(path), path))
+    except ValueError as exc:
+        reason = str(exc).removeprefix(str(path)).lstrip(": ")
+        raise ValueError(f"{path}: not a grid summary written by pporpe ({reason})") from None
 
 
 def _same_entry(old: dict[str, Any], new: dict[str, Any], cfg: Any) -> bool:
@@ -79,13 +78,15 @@ def grid_status(
     the one recorded before), pending (the others), and the wall time of every call."""
     done = [k for k in keys if (out_dir / k / "done.json").exists()]
     old_failed = previous.get("failed")
-    old_failed = old_failed if isinstance(old_failed, dict) else {}
+    old_failed = {k: v for k, v in old_failed.items() if isinstance(v, str)} if isinstance(
+        old_failed, dict) else {}  # fmt: skip
     failed = {}
     for key in keys:
         if key in done or not (out_dir / key / "error.txt").exists():
             continue
         failed[key] = failed_now.get(key) or old_failed.get(key) or _last_line(out_dir / key)
     old_time = previous.get("wall_time_s")
+    old_time = old_time if isinstance(old_time, float) and math.isfinite(old_time) else 0.0
     return {
         "runs": len(keys),
         "done": sorted(done),
@@ -123,8 +124,8 @@ def write_status(
     if path.exists() and not changed:
         return
     try:
-        previous = json.loads(path.read_text()) if path.exists() else {}
-    except (OSError, ValueError):
+        previous = read_json(path) if path.exists() else {}
+    except ValueError:
         previous = {}  # an unreadable status is rebuilt from the run folders
     summary = _read_summary(out_dir / "grid.json") or {"runs": []}
     keys = [r["key"] for r in summary["runs"]]

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ...limits import MAX_CSV_BYTES
+from ...run_files import read_regular_file
 from ...runs.cadence import LIVE_SECONDS, RECENT_EPISODES, read_live
 
 __all__ = ["RECENT_EPISODES", "GridProgress", "RunProgress", "run_progress"]
@@ -40,9 +42,9 @@ def _from_csv(run_dir: Path) -> tuple[int, int, float | None]:
     :func:`pporpe.runs.logger.read_records` costs about 20 us a row (a second per count
     for 30 runs of 2000 episodes)."""
     try:
-        with open(run_dir / "episodes.csv", encoding="utf-8", errors="replace") as f:
-            lines = f.read().splitlines()
-    except OSError:
+        raw = read_regular_file(run_dir / "episodes.csv", MAX_CSV_BYTES)
+        lines = raw.decode("utf-8", errors="replace").splitlines()
+    except ValueError:  # missing, not a file, too large: counted as no episodes
         lines = []
     rows = [ln for ln in lines[1:] if ln]
     if not rows:
@@ -52,7 +54,7 @@ def _from_csv(run_dir: Path) -> tuple[int, int, float | None]:
     if "total_steps" in header and "length" in header:
         i_steps, i_len = header.index("total_steps"), header.index("length")
         # A file someone edited by hand must not stop the grid: count its rows instead.
-        with contextlib.suppress(ValueError, IndexError):
+        with contextlib.suppress(ValueError, IndexError, OverflowError):
             recent = [float(r.split(",")[i_len]) for r in rows[-RECENT_EPISODES:]]
             steps, length = int(float(rows[-1].split(",")[i_steps])), sum(recent) / len(recent)
     return len(rows), steps, length

@@ -30,7 +30,12 @@ from typing import Any
 from ...envs import make_env
 from ...runs.cadence import CHECKPOINT_WITHIN_S
 from ...runs.folder import CHECKPOINT, check_checkpoint
-from ...runs.population_checkpoint import adopt_orphaned_states, discard_finished
+from ...runs.links import RUN_WRITES, refuse_linked_path, refuse_links
+from ...runs.population_checkpoint import (
+    POPULATION_FILE,
+    adopt_orphaned_states,
+    discard_finished,
+)
 from ...text import count
 from .backends import BACKENDS, run_job, run_local, run_ray
 from .merge import merged_grid_summary, write_grid_summary, write_status
@@ -139,6 +144,21 @@ def _check_checkpoints(jobs: list[Job]) -> None:
                 check_checkpoint(path)
 
 
+def _check_links(out_dir: Path, todo: list[tuple[Path, Any]], jobs: list[Job]) -> None:
+    """Refuse, before any work, a symbolic link where the grid will write: its own files,
+    the folders on the way to each run still to train and what the run writes there, the
+    populations' homes (:mod:`pporpe.runs.links`)."""
+    refuse_links(out_dir, ("grid.json", "status.json", POPULATIONS))
+    for run_dir, _ in todo:
+        refuse_linked_path(out_dir, run_dir.relative_to(out_dir))
+        refuse_links(run_dir, RUN_WRITES)
+    for job in jobs:
+        home = Path(job.home)
+        if home.is_relative_to(out_dir):
+            refuse_linked_path(out_dir, home.relative_to(out_dir))
+        refuse_links(home, (CHECKPOINT, POPULATION_FILE))
+
+
 def _discard_finished_populations(populations: Path, progress: bool) -> None:
     """Delete the checkpoints of the populations whose runs have all finished
     (:func:`~pporpe.runs.population_checkpoint.discard_finished`): a population discards its
@@ -163,6 +183,7 @@ def _plan(
     skipped, todo = _split_finished(spec, out_dir)
     _check_tasks(spec.source, [cfg for _, cfg in todo])
     jobs = plan_jobs(todo, out_dir, population, workers) if todo else []
+    _check_links(out_dir, todo, jobs)
     _check_checkpoints(jobs)
     adopted = adopt_orphaned_states(
         out_dir / POPULATIONS, [j.home for j in jobs], [d for j in jobs for d, _ in j.runs]

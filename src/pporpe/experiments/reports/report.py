@@ -10,11 +10,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ...runs.links import refuse_links
 from .batch.report import write_batch_report
 from .batch.results import is_batch_grid
 from .online.report import write_online_report
 
-__all__ = ["write_report"]
+__all__ = ["REPORT_FILES", "write_report"]
+
+REPORT_FILES = ("REPORT.md", "summary.md", "summary.csv", "runs.csv",
+                *(f"fig_{name}.{ext}" for name in ("summary", "learning", "regularization",
+                  "aggregate") for ext in ("png", "pdf")))  # fmt: skip
+"""What a report writes into a grid's folder (checked first: never a symbolic link)."""
 
 
 def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
@@ -23,6 +29,7 @@ def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
     if not (isinstance(smooth, int) and smooth >= 1):
         raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
     root = Path(out)
+    refuse_links(root, REPORT_FILES)  # before anything is written
     if (root / "grid.json").exists() and is_batch_grid(root):
         return write_batch_report(root, smooth)
     return write_online_report(root, smooth)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, fields
 from itertools import pairwise
@@ -11,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from ...evaluation import summarize_returns
+from ...run_files import read_done, read_evaluation, read_grid
 from ...runs.kinds import SurrogateDiagnostics
 from ...runs.logger import EpisodeRecord, read_records
 
@@ -60,7 +61,7 @@ def load_results(out: str | Path) -> list[Cell]:
     grid_file = root / "grid.json"
     if not grid_file.exists():
         raise ValueError(f"{root} holds no grid results (no grid.json); run `pporpe reproduce`")
-    grid = json.loads(grid_file.read_text())
+    grid = read_grid(root)
     cells: dict[tuple[str, str], Cell] = {}
     for run in grid["runs"]:
         key = (run["env"], run["method"])
@@ -70,9 +71,10 @@ def load_results(out: str | Path) -> list[Cell]:
             cell.missing.append(run["seed"])
             continue
         cell.curves[run["seed"]] = read_records(run_dir / "episodes.csv")
-        ev = run_dir / "evaluation.json"
-        if ev.exists():
-            cell.scores[run["seed"]] = float(json.loads(ev.read_text())["median"])
+        if (run_dir / "evaluation.json").exists():
+            ev = read_evaluation(run_dir)
+            median = ev["median"] if "median" in ev else summarize_returns(ev["returns"]).median
+            cell.scores[run["seed"]] = float(median)
     return list(cells.values())
 
 
@@ -85,7 +87,7 @@ def compute_line(root: Path, grid: dict[str, Any]) -> str | None:
     checkpoint) is not counted, nor the CPU time of a run before it resumed from a
     checkpoint without the record (``cpu_time_since`` > 0: counted as part-way)."""
     done = [root / r["key"] / "done.json" for r in grid["runs"]]
-    stats = [json.loads(f.read_text()) for f in done if f.exists()]
+    stats = [read_done(f.parent) for f in done if f.exists()]
     timed = [d for d in stats if "cpu_time" in d]
     if not timed:
         return None

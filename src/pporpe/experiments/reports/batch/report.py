@@ -17,10 +17,10 @@ For a grid whose runs are batch runs (:func:`.results.is_batch_grid`), writes
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from ....io import atomic_savefig, atomic_write_text
+from ....run_files import read_grid
 from ..plots import summary_figure
 from .figures import aggregate_figure, step_curve_figure
 from .results import load_batch
@@ -35,7 +35,7 @@ def write_batch_report(out: str | Path, smooth: int = 10) -> list[Path]:
     root = Path(out)
     cells, batch = load_batch(root)
     stats = batch_statistics(batch)
-    grid = json.loads((root / "grid.json").read_text())
+    grid = read_grid(root)
     written = [
         atomic_write_text(root / "REPORT.md", batch_report_markdown(root, grid, cells, stats)),
         atomic_write_text(root / "summary.md", batch_summary_markdown(stats)),

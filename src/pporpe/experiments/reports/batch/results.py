@@ -17,13 +17,13 @@ measures it as CleanRL and rliable do, by environment steps rather than by episo
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ....run_files import read_grid, read_json
 from ....runs.logger import EpisodeRecord, LoggedUpdate, read_updates
 from ..results import QUARTERS, Cell, load_results
 
@@ -174,13 +174,14 @@ def quarters_by_steps(updates: list[LoggedUpdate], field: str) -> tuple[float, .
 
 def _run_config(run_dir: Path) -> dict[str, object]:
     path = run_dir / "config.json"
-    return json.loads(path.read_text()) if path.exists() else {}
+    data = read_json(path) if path.exists() else {}
+    return data if isinstance(data, dict) else {}
 
 
 def is_batch_grid(out: str | Path) -> bool:
     """Whether the grid in ``out`` holds batch runs: a run folder's ``config.json`` says
     ``"kind": "batch"`` (the first run folder that has one decides)."""
-    grid = json.loads((Path(out) / "grid.json").read_text())
+    grid = read_grid(out)
     for run in grid["runs"]:
         cfg = _run_config(Path(out) / run["key"])
         if cfg:
@@ -209,7 +210,7 @@ def load_batch(out: str | Path) -> tuple[list[Cell], list[BatchCell]]:
     root = Path(out)
     cells = load_results(root)
     keys = {(r["env"], r["method"], r["seed"]): r["key"]
-            for r in json.loads((root / "grid.json").read_text())["runs"]}  # fmt: skip
+            for r in read_grid(root)["runs"]}  # fmt: skip
     batch = []
     for c in cells:
         runs = tuple(

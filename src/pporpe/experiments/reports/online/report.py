@@ -27,11 +27,11 @@ counted. :func:`pporpe.experiments.reports.report.write_report` sends a grid of 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from ....io import atomic_savefig, atomic_write_text
+from ....run_files import read_grid
 from ..plots import curve_figure, summary_figure
 from ..preregistration import (
     Preregistration,
@@ -105,7 +105,7 @@ def report_markdown(root: Path, cells: list[Cell], stats: Statistics | None = No
     """REPORT.md: what ran, the tables, the paper's claims against the data, the figures,
     and the folder's hand-written ``notes.md`` (if any) at the top."""
     stats = statistics(cells) if stats is None else stats
-    grid = json.loads((root / "grid.json").read_text())
+    grid = read_grid(root)
     regs = load_preregistrations(root)
     ran = _budget_lines(grid, cells) + preregistration_lines(cells, regs) + _compute(root, grid)
     parts = report_head(root, grid)
