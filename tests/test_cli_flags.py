@@ -140,22 +140,22 @@ HINT = "({} --help for the options)"
          "train, evaluate, reproduce, report)"),
         # budgets far beyond any real use, and seeds past the bound, name the flag and bound
         (["train", "--out", "x", "--steps", str(10**20)],
-         "pporpe train: error: argument --steps: must be at most 100,000,000,000; got "
+         "pporpe train: error: argument --steps: must be at most 1,000,000,000; got "
          "100000000000000000000"),
         (["train", "--out", "x", "--learner", "batch", "--steps", str(10**12)],
-         "pporpe train: error: argument --steps: must be at most 100,000,000,000; got "
+         "pporpe train: error: argument --steps: must be at most 1,000,000,000; got "
          "1000000000000"),
         (["train", "--out", "x", "--episodes", str(10**9)],
-         "pporpe train: error: argument --episodes: must be at most 100,000,000; got "
+         "pporpe train: error: argument --episodes: must be at most 1,000,000; got "
          "1000000000"),
         (["train", "--out", "x", "--eval-episodes", str(10**9)],
-         "pporpe train: error: argument --eval-episodes: must be at most 100,000,000; got "
+         "pporpe train: error: argument --eval-episodes: must be at most 10,000; got "
          "1000000000"),
         (["train", "--out", "x", "--seed", str(10**30)],
          "pporpe train: error: argument --seed: must be at most 4,294,967,295; got "
          "100000000000... (31 characters)"),
         (["evaluate", "r", "--episodes", str(10**20)],
-         "pporpe evaluate: error: argument --episodes: must be at most 100,000,000; got "
+         "pporpe evaluate: error: argument --episodes: must be at most 10,000; got "
          "100000000000000000000"),
         (["evaluate", "r", "--seed", "-1"],
          "pporpe evaluate: error: argument --seed: must be an int >= 0; got -1"),

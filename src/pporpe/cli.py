@@ -48,7 +48,7 @@ def _train_flags() -> tuple[Any, dict[str, Any]]:
     upper bounds (:data:`~pporpe.config.MAX_STEPS`, ``MAX_EPISODES``, ``MAX_SEED``)."""
     from .batch.config import BatchConfig
     from .cli_flags import ConfigFlags, FlagGroup
-    from .config import MAX_EPISODES, MAX_SEED, MAX_STEPS
+    from .config import MAX_EPISODES, MAX_EVAL_EPISODES, MAX_SEED, MAX_STEPS
     from .online.config import OnlineConfig, TrainConfig
 
     # the same settings of a run; checkpoint_every counts episodes of one, updates of the other
@@ -58,7 +58,7 @@ def _train_flags() -> tuple[Any, dict[str, Any]]:
         "online": FlagGroup("online learner", OnlineConfig),
         "batch": FlagGroup("batch PPO", BatchConfig, skip=shared, rename={"total_steps": "steps"}),
     }
-    bounds = {"steps": MAX_STEPS, "episodes": MAX_EPISODES, "eval_episodes": MAX_EPISODES,
+    bounds = {"steps": MAX_STEPS, "episodes": MAX_EPISODES, "eval_episodes": MAX_EVAL_EPISODES,
               "seed": MAX_SEED}  # fmt: skip
     return ConfigFlags(list(groups.values()), bounds), groups
 
@@ -408,13 +408,13 @@ def _add_train(sub: Any) -> None:
 
 def _add_evaluate(sub: Any) -> None:
     """The ``pporpe evaluate`` subcommand."""
-    from .config import MAX_EPISODES, MAX_SEED
+    from .config import MAX_EVAL_EPISODES, MAX_SEED
 
     ev = sub.add_parser("evaluate", help="test a trained run: median, mean and IQR of returns")
     ev.add_argument("run_dir", help="run folder written by `pporpe train`")
     ev.add_argument(
         "--episodes",
-        type=bounded_int(MAX_EPISODES, low=1),
+        type=bounded_int(MAX_EVAL_EPISODES, low=1),
         default=50,
         help="test episodes (default 50)",
     )

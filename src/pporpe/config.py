@@ -17,12 +17,23 @@ import dataclasses
 import math
 from typing import Any, Literal, TypeVar, get_args
 
-from .limits import MAX_HIDDEN_WEIGHTS, MAX_LAYERS, MAX_UNITS, check_int_in, short_repr
+from .limits import (  # the bounds of a run's settings, re-exported for the command line
+    MAX_EPISODES,
+    MAX_EVAL_EPISODES,
+    MAX_HIDDEN_WEIGHTS,
+    MAX_LAYERS,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_UNITS,
+    check_int_in,
+    short_repr,
+)
 from .surrogates import METHODS, Method, RPEForm, check_surrogate_params
 
 __all__ = [
     "ACTIVATIONS",
     "MAX_EPISODES",
+    "MAX_EVAL_EPISODES",
     "MAX_SEED",
     "MAX_STEPS",
     "METHODS",
@@ -53,16 +64,6 @@ ACTIVATIONS: tuple[str, ...] = get_args(Activation)
 
 RPE_FORMS: tuple[str, ...] = get_args(RPEForm)
 
-MAX_STEPS = 10**11
-"""Upper bound of a run's budget in environment steps (``steps``, batch PPO's
-``total_steps``): three years at 1000 steps/s, far beyond any real run."""
-
-MAX_EPISODES = 10**8
-"""Upper bound of a number of episodes: a run's budget (``episodes``) or its test
-episodes (``eval_episodes``, ``pporpe evaluate --episodes``)."""
-
-MAX_SEED = 2**32 - 1
-"""Largest seed (a run's members and its test environment add offsets to it)."""
 
 
 def require(cond: bool, name: str, value: object, allowed: str) -> None:
