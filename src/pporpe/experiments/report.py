@@ -22,7 +22,8 @@ Reads ``OUT/grid.json`` and each run's ``episodes.csv`` and ``evaluation.json``
 
 each figure as PNG and PDF (:mod:`.report_figures`). Unfinished or failed runs are left
 out and counted. A grid of batch runs (``kind = "batch"``) gets its own report, by steps
-and over tasks (:mod:`.batch_report`).
+and over tasks (:mod:`.batch_report`); a sweep's tuning stage its sensitivity report, and
+its evaluation stage its grid's report with the sweep's sections (:mod:`.sweep_report`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from .results import (
 )
 from .stats import mean_ci
 from .summary import Statistics, improvement_rows, statistics
+from .sweep_report import evaluation_sections, sweep_stage, write_tuning_report
 from .tables import report_head, summary_csv, summary_markdown
 from .verdicts import claims_markdown
 
@@ -124,6 +126,20 @@ def write_report(out: str | Path, smooth: int = 10) -> list[Path]:
     if not (isinstance(smooth, int) and smooth >= 1):
         raise ValueError(f"smooth must be an int >= 1; got {smooth!r}")
     root = Path(out)
+    stage = sweep_stage(root)
+    if stage == 1:
+        return write_tuning_report(root)
+    written = _write_grid_report(root, smooth)
+    if stage == 2:  # a sweep's evaluation: its settings and trust regions after the verdicts
+        extra, files = evaluation_sections(root)
+        report = root / "REPORT.md"
+        atomic_write_text(report, report.read_text().rstrip("\n") + "\n\n" + extra)
+        written += files
+    return written
+
+
+def _write_grid_report(root: Path, smooth: int) -> list[Path]:
+    """The report of a grid (of batch runs: :func:`.batch_report.write_batch_report`)."""
     if (root / "grid.json").exists() and is_batch_grid(root):
         return write_batch_report(root, smooth)
     cells = load_results(root)
