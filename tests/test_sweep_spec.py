@@ -70,6 +70,22 @@ def test_every_combination_is_a_cell_with_its_own_folder_and_settings() -> None:
     assert [r.key for r in chunk.runs] == [k.replace("seed100", "seed101") for k in first]
 
 
+def test_an_online_grid_sweeps_its_learners_settings() -> None:
+    data = {"methods": ["ppo", "rpe"], "seeds": 1, "learner": {"layers": 1, "units": 8},
+            "tasks": [{"env": "pendulum", "episodes": 2}],
+            "sweep": {"ppo": {"lr": [1e-4, 1e-3]}, "rpe": {"lr": [1e-4, 1e-3]}}}  # fmt: skip
+    spec = parse_spec(data)
+    assert [r.key for r in spec.runs] == [
+        "pendulum/ppo-lr0.0001/seed0", "pendulum/ppo-lr0.001/seed0",
+        "pendulum/rpe-lr0.0001/seed0", "pendulum/rpe-lr0.001/seed0",
+    ]  # fmt: skip
+    assert [r.config.learner.lr for r in spec.runs] == [1e-4, 1e-3] * 2
+    assert {r.config.learner.units for r in spec.runs} == {8}
+    data["sweep"]["rpe"] = {"kappa": [10.0, -1.0]}
+    with pytest.raises(ValueError, match=r"^spec: sweep\.rpe\.kappa: kappa must be"):
+        parse_spec(data)
+
+
 def test_a_method_the_sweep_does_not_name_keeps_its_plain_folder() -> None:
     spec = parse_spec(with_sweep({"equal_budget": False, "rpe": {"eps": [0.1, 0.3]}}))
     keys = [r.key for r in spec.runs if r.seed == 100]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from repo_scripts import load_script
 from test_grid import _launch, records_of
 
 from pporpe.cli import main
@@ -148,6 +149,20 @@ def test_stage_2_runs_the_selection_on_fresh_seeds_and_gets_the_grids_report(
     for name in ("fig_aggregate.png", "fig_trust_region.png", "runs.csv", "trust_region.csv"):
         assert (out / name).stat().st_size > 0
     assert not (out / "selected.toml").exists()
+
+
+def test_a_sweeps_runs_are_collected_and_found_as_committed_runs(
+    stage1: Path, tmp_path: Path
+) -> None:
+    """experiments/collect.py copies a sweep's finished runs (their folders named after
+    their settings), and tests/test_committed_results.py's glob finds every one of them."""
+    collect = load_script("experiments/collect.py", "collect")
+    results = tmp_path / "results"
+    assert collect.collect(stage1, results / "tinysweep") == (8, 0)
+    found = sorted(p.parent for p in results.glob("*/*/*/seed*/done.json"))
+    keys = [r["key"] for r in json.loads((stage1 / "grid.json").read_text())["runs"]]
+    assert found == sorted(results / "tinysweep" / k for k in keys)
+    assert all((run / "updates.csv").is_file() for run in found)
 
 
 def stage2_text(stage1: Path) -> str:

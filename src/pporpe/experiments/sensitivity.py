@@ -159,7 +159,8 @@ def trust_markdown(stats: SweepStatistics) -> list[str]:
     lines.append(
         "\nEach run's mean over its updates of the approximate KL of the new policy from the "
         "old, of the mean abs(rho - 1) and of the share of samples past the threshold "
-        "(`updates.csv`), then the mean over the runs of the setting (every task and seed); "
+        "(`updates.csv`; for an online run, its episodes' diagnostics and no KL), then the "
+        "mean over the runs of the setting (every task and seed); "
         f"sorted by the KL, so that rows of similar KL compare the methods at the same size "
         f"of update rather than at the same eps. `trust_region.csv` holds every run's numbers "
         f"with its {stats.rule.metric_name}.\n"

@@ -60,6 +60,16 @@ def _budget(cfg: dict[str, Any]) -> str:
     return "?"
 
 
+def _flat(run: dict[str, Any]) -> dict[str, Any]:
+    """A ``grid.json`` run with its learner's settings beside the run's (an online run's
+    config nests them under ``learner``)."""
+    cfg = run["config"]
+    nested = cfg.get("learner")
+    if isinstance(nested, dict):
+        cfg = {**{k: v for k, v in cfg.items() if k != "learner"}, **nested}
+    return {**run, "config": cfg}
+
+
 def _what_ran(root: Path, grid: dict[str, Any], stats: SweepStatistics) -> list[str]:
     runs = grid["runs"]
     settings = grid["sweep"]["settings"]
@@ -79,7 +89,7 @@ def _what_ran(root: Path, grid: dict[str, Any], stats: SweepStatistics) -> list[
     source = grid.get("source", "SPEC.toml")
     lines += [
         "",
-        f"Settings shared by every run: {settings_line(runs)}.",
+        f"Settings shared by every run: {settings_line([_flat(r) for r in runs])}.",
         "",
         f"Commands: `pporpe reproduce {source} --out {root.name}` trains the sweep "
         f"(resumable); `pporpe report {root.name}` writes this report and, once every run has "

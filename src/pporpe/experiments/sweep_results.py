@@ -20,6 +20,7 @@ import numpy as np
 from ..runs.logger import read_records, read_updates
 from .aggregate import normalised
 from .batch_results import last_return, step_mean_return
+from .results import DIAGNOSTICS, update_mean
 from .selection import Candidate, Rule, Selection, parse_rule, select
 from .stats import Estimate, bootstrap_ci, stratified_iqm_ci
 from .sweep import Setting, cell_name, sweep_of
@@ -48,7 +49,9 @@ class SweepRun:
     """Each :data:`.batch_results.METRICS` key's value (NaN where the run has none)."""
     trust: dict[str, float]
     """Each of :data:`TRUST_FIELDS`, the mean over the run's updates (every update weighs
-    the same); NaN without ``updates.csv`` (an online run) or without a finite value."""
+    the same) in its ``updates.csv``; for an online run (no ``updates.csv``) the mean of its
+    episodes' diagnostics weighted by their lengths (one update per step), and no KL. NaN
+    without a finite value."""
 
 
 @dataclass(frozen=True)
@@ -85,8 +88,12 @@ def _run(seed: int, run_dir: Path) -> SweepRun:
     values = {"score": score, "last100": last_return(records),
               "mean_return": step_mean_return(records)}  # fmt: skip
     path = run_dir / "updates.csv"
-    updates = read_updates(path) if path.exists() else []
-    trust = {f: _mean([u.values.get(f, math.nan) for u in updates]) for f in TRUST_FIELDS}
+    if path.exists():
+        updates = read_updates(path)
+        trust = {f: _mean([u.values.get(f, math.nan) for u in updates]) for f in TRUST_FIELDS}
+    else:  # an online run: one update per step, its episodes' diagnostics, no KL
+        trust = {f: update_mean(records, f) if f in DIAGNOSTICS else math.nan
+                 for f in TRUST_FIELDS}  # fmt: skip
     return SweepRun(seed, values, trust)
 
 
