@@ -18,6 +18,8 @@ from pporpe.experiments.grid import load_spec, parse_spec, select_runs, spec_sum
 from pporpe.experiments.merge import write_grid_summary
 from pporpe.experiments.selected_spec import toml_text
 from pporpe.experiments.sweep import cell_name, value_text
+from pporpe.runs.folder import config_json, open_run_dir
+from pporpe.runs.kinds import kind_of
 from pporpe.surrogates import METHODS, check_surrogate_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -262,3 +264,23 @@ def test_the_tuned_mujoco_sweep_is_in_range_for_ppo_rb_and_rpe() -> None:
     assert {(r.config.eps, r.config.lr) for r in study.runs if r.method == "rpe"} == {
         (e, lr) for e in (0.1, 0.2, 0.3, 0.5) for lr in (3e-4, 1e-3)
     }
+
+
+def test_the_committed_batch_runs_are_the_sweeps_eps_0_2_lr_3e_4_cells(tmp_path: Path) -> None:
+    """results/batch-mujoco's runs (seeds 0-9, which no selection sees) are configured as
+    the tuned study's eps 0.2 / lr 3e-4 cells on those seeds: a stage 2 that selects that
+    setting can take them in (their folders copied under the cell's name) as finished."""
+    data = tomllib.loads((ROOT / "experiments" / "tuned-mujoco.toml").read_text())
+    data["methods"].remove("spo")
+    del data["sweep"]["spo"]
+    data["seeds"] = [0, 9]
+    data["sweep"]["evaluation_seeds"] = [1]
+    study = parse_spec(data, "tuned-mujoco.toml")
+    cells = [r for r in study.runs if r.setting == (("eps", 0.2), ("lr", 3e-4))]
+    assert len(cells) == 3 * 4 * 2
+    for run in cells:
+        committed = ROOT / "results" / "batch-mujoco" / run.env / run.method / f"seed{run.seed}"
+        copy = tmp_path / run.key
+        copy.mkdir(parents=True)
+        (copy / "config.json").write_text((committed / "config.json").read_text())
+        open_run_dir(copy, config_json(kind_of(run.config), run.config))  # raises if not
