@@ -4,7 +4,8 @@ Every file says what it owns in its first line and stays under 600 lines, every 
 under 60; no file imports one that imports it back (TYPE_CHECKING and function-level
 imports included), anywhere in the package; the rooms' arrows point one way (the
 environments' families never import the face, the grids and the reports never import each
-other, the online and the batch report never import each other); the old module paths of
+other, the online and the batch report never import each other nor does a sweep's report
+import the online one); the old module paths of
 the environments re-export the same objects with a DeprecationWarning. For the online
 learner: both engines answer the population's interface, the fused kernel's disk cache is
 keyed on all of its files, and the warm-up compiles every signature a population then
@@ -132,6 +133,13 @@ ARROWS = [
     ("pporpe.experiments.reports", "pporpe.experiments.grids", "room"),
     ("pporpe.experiments.reports.online", "pporpe.experiments.reports.batch", "room"),
     ("pporpe.experiments.reports.batch", "pporpe.experiments.reports.online", "room"),
+    # a sweep's report reads runs as the batch report does, never the online report's code
+    ("pporpe.experiments.reports.sweep", "pporpe.experiments.reports.online", "room"),
+    ("pporpe.experiments.reports.online", "pporpe.experiments.reports.sweep", "room"),
+    ("pporpe.experiments.reports.batch", "pporpe.experiments.reports.sweep", "room"),
+    # what both rooms know of a sweep imports neither room
+    ("pporpe.experiments.sweep_terms", "pporpe.experiments.grids", "room"),
+    ("pporpe.experiments.sweep_terms", "pporpe.experiments.reports", "room"),
 ]
 
 
@@ -146,10 +154,11 @@ def test_the_rooms_arrows_point_one_way(room: str, never: str, scope: str) -> No
 
 
 def test_what_the_reports_share_imports_neither_report() -> None:
-    """The shared reporting modules reach neither the online nor the batch report; only
-    the face of ``pporpe report`` (``reports.report``) sends a grid to one of them."""
+    """The shared reporting modules reach neither the online, the batch nor a sweep's
+    report; only the face of ``pporpe report`` (``reports.report``) sends a grid to one of
+    them."""
     reports = "pporpe.experiments.reports"
-    either = set(_room(f"{reports}.online") + _room(f"{reports}.batch"))
+    either = set(_room(f"{reports}.online") + _room(f"{reports}.batch") + _room(f"{reports}.sweep"))
     shared = [n for n in _room(reports) if n not in either and n != f"{reports}.report"]
     assert f"{reports}.stats" in shared and f"{reports}.verdicts" in shared
     for name in shared:

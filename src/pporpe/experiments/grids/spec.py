@@ -20,8 +20,12 @@ A spec (see ``experiments/paper.toml``)::
     [tasks.learner]            # optional: overrides for this task only
     lr = 1e-4
 
-Every run is independent; its folder is ``OUT/<env>/<method>/seed<k>``. A malformed
-spec is rejected before any run starts, naming the file, the field and what is allowed.
+    [sweep.rpe]                # optional: settings to sweep, per method (:mod:`.sweep`)
+    eps = [0.1, 0.2]
+
+Every run is independent; its folder is ``OUT/<env>/<method>/seed<k>`` (a sweep's:
+``OUT/<env>/<method>-eps0.1/seed<k>``). A malformed spec is rejected before any run starts,
+naming the file, the field and what is allowed.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from ...config import is_int
 from ...envs import resolve_env_id
 from ...runs.kinds import get_kind
 from ...surrogates import METHODS
+from .sweep import Setting, SweepSpec, cell_name, parse_sweep, settings_of
 
 __all__ = ["GridSpec", "RunSpec", "load_spec", "parse_spec", "select_runs"]
 
@@ -50,6 +55,7 @@ _TOP_FIELDS = {
     "checkpoint_every",
     "learner",
     "tasks",
+    "sweep",
 }
 _TASK_FIELDS = {"env", "episodes", "steps", "seeds", "learner"}
 
@@ -66,11 +72,14 @@ class RunSpec:
     """Seed."""
     config: Any
     """Full run configuration (the kind's config type, e.g. TrainConfig)."""
+    setting: Setting = ()
+    """The run's swept settings (a sweep's cell), ``(field, value)`` pairs; () without."""
 
     @property
     def key(self) -> str:
-        """Relative folder of the run: ``<env>/<method>/seed<k>``."""
-        return f"{self.env}/{self.method}/seed{self.seed}"
+        """Relative folder of the run: ``<env>/<method>/seed<k>``; in a sweep,
+        ``<env>/<method>-<field><value>.../seed<k>`` (:func:`.sweep.cell_name`)."""
+        return f"{self.env}/{cell_name(self.method, self.setting)}/seed{self.seed}"
 
 
 @dataclass(frozen=True)
@@ -83,6 +92,8 @@ class GridSpec:
     """Every run, ordered task by task, then seed, then method."""
     source: str
     """The file it was read from."""
+    sweep: SweepSpec | None = None
+    """The spec's sweep (:mod:`.sweep`); None for a grid without one."""
 
     @property
     def methods(self) -> list[str]:
@@ -241,16 +252,52 @@ def parse_spec(data: dict[str, Any], where: str = "spec") -> GridSpec:
         raise _fail(where, "tasks", tasks, "a non-empty array of tables ([[tasks]])")
     runs: list[RunSpec] = []
     seen_envs: set[str] = set()
+    parsed = []
     for i, task in enumerate(tasks):
         at = f"{where}: tasks[{i}]"
         env, budget, task_learner = _parse_task(task, at, seen_envs)
         task_seeds = _parse_seeds(task["seeds"], at) if "seeds" in task else seeds
+        parsed.append((at, env, budget, task_learner, task_seeds))
+    all_seeds = list(dict.fromkeys(s for *_, task_seeds in parsed for s in task_seeds))
+    sweep = parse_sweep(data, where, methods, all_seeds) if "sweep" in data else None
+    for at, env, budget, task_learner, task_seeds in parsed:
         for seed in task_seeds:
             for method in methods:
                 build = functools.partial(kind.grid_config, env, method, seed, budget, common)
-                cfg = _run_config(build, base_learner, task_learner, where, at)
-                runs.append(RunSpec(method, env, seed, cfg))
-    return GridSpec(name=name, runs=tuple(runs), source=where)
+                for setting in settings_of(sweep, method):
+                    cfg = _swept_config(build, base_learner, task_learner, setting,
+                                        (where, at, method))  # fmt: skip
+                    runs.append(RunSpec(method, env, seed, cfg, setting))
+    return GridSpec(name=name, runs=tuple(runs), source=where, sweep=sweep)
+
+
+def _swept_config(
+    build: Callable[[dict[str, Any], str], Any],
+    base: dict[str, Any],
+    own: dict[str, Any],
+    setting: Setting,
+    places: tuple[str, str, str],
+) -> Any:
+    """One run's configuration with its swept ``setting`` over the spec's and the task's
+    learner tables (:func:`_run_config`); ``places`` holds the spec, the task's place and
+    the method. A bad swept value is named by its section, ``sweep.<method>.<field>``: the
+    first field refused alone, or every field when only their combination is."""
+    spec, at, method = places
+    if not setting:
+        return _run_config(build, base, own, spec, at)
+    for name, _ in setting:
+        if name in own:
+            raise ValueError(f"{at}.learner: field '{name}' is swept by sweep.{method}; "
+                             "a task's table cannot set it")  # fmt: skip
+    prefix = f"{spec}: sweep.{method}"
+    try:
+        return build({**base, **own, **dict(setting)}, prefix)
+    except ValueError as exc:
+        _run_config(build, base, own, spec, at)  # raises if the fault is not the sweep's
+        reason = str(exc).removeprefix(f"{prefix}: ")
+    culprits = [n for n, v in setting if _fails(build, {**base, **own, n: v}, at)]
+    names = culprits[:1] or [n for n, _ in setting]
+    raise ValueError(f"{prefix}.{' and '.join(names)}: {reason}")
 
 
 def _run_config(
@@ -293,8 +340,9 @@ def load_spec(path: str | Path) -> GridSpec:
 
 
 def spec_summary(spec: GridSpec) -> dict[str, Any]:
-    """A JSON-ready description of the grid (saved beside its results)."""
-    return {
+    """A JSON-ready description of the grid (saved beside its results); a sweep's also
+    records the sweep (``"sweep"``) and each run's swept settings (``"setting"``)."""
+    summary: dict[str, Any] = {
         "name": spec.name,
         "source": spec.source,
         "runs": [
@@ -303,8 +351,12 @@ def spec_summary(spec: GridSpec) -> dict[str, Any]:
                 "method": r.method,
                 "env": r.env,
                 "seed": r.seed,
+                **({"setting": dict(r.setting)} if spec.sweep is not None else {}),
                 "config": dataclasses.asdict(r.config),
             }
             for r in spec.runs
         ],
     }
+    if spec.sweep is not None:
+        summary["sweep"] = spec.sweep.summary()
+    return summary
