@@ -1,8 +1,8 @@
 # pporpe: two commands on a fresh machine.
 #   make reproduce   the main job: the quick grid + report (installs into .venv first)
-#   make test        lint, type-check, the docs site and the test suite (installs what it
-#                    needs first, with the optional extras it tests: Ray, SB3, video, docs,
-#                    MuJoCo)
+#   make test        lint, type-check, the docs site and the test suite, at the same time,
+#                    pytest on every core (installs what it needs first, with the optional
+#                    extras it tests: Ray, SB3, video, docs, MuJoCo)
 #   make docs        the documentation site into docs/_build/html (warnings are errors)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
 
@@ -12,7 +12,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip install -c constraints.txt
 OUT    ?= results
 
-.PHONY: reproduce reproduce-paper reproduce-paper-full test lint docs docs-pages install install-dev bench bench-sb3 clean
+.PHONY: reproduce reproduce-paper reproduce-paper-full test lint docs docs-pages suite install install-dev bench bench-sb3 clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -20,9 +20,13 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PIP) --quiet -e .
 	touch $@
 
-$(VENV)/.installed-dev: $(VENV)/.installed
+# One pip run for the package and every extra the tests use (the docs' too), so a fresh
+# clone's make test resolves and builds once.
+$(VENV)/.installed-dev: pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
 	$(PIP) --quiet -e ".[dev,ray,sb3,video,docs,mujoco]"
-	touch $@
+	touch $(VENV)/.installed $(VENV)/.installed-docs $@
 
 $(VENV)/.installed-docs: $(VENV)/.installed
 	$(PIP) --quiet -e ".[docs,sb3]"
@@ -79,9 +83,16 @@ docs-pages: $(VENV)/.installed
 	$(PY) docs/generate.py
 	$(PY) experiments/headline.py
 
-## The test suite: lint, types, the docs site, then pytest.
-test: lint docs
-	$(PY) -m pytest -q
+## The test suite: lint and types, the docs site and pytest, the three at once, pytest on
+## every core (pytest-xdist; the Ray tests on one worker, as they share a Ray head). Each
+## one's output is printed whole when it ends (make's --output-sync), so a failure reads as
+## it would alone; make test fails if any of them fails.
+test: $(VENV)/.installed-dev
+	$(MAKE) --no-print-directory -j3 --output-sync=target lint docs suite
+
+## pytest alone, on every core.
+suite: $(VENV)/.installed-dev
+	$(PY) -m pytest -q -n auto --dist loadgroup
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build docs/_autosummary

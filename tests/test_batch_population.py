@@ -23,6 +23,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from resume_points import checkpointed_records, resume_problems
 
 from pporpe.batch import BatchConfig, BatchLearner, train_batch
 from pporpe.batch.kind import BatchPopulationTrainer
@@ -396,8 +397,10 @@ def test_sigkill_a_batch_population_then_resume_gives_the_same_records(tmp_path:
     time.sleep(0.5)
     unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
     assert unfinished, "the kill came too late to test resuming"
+    saved = checkpointed_records(out)
     proc = _launch(spec_path, out)
     assert proc.wait(timeout=300) == 0
+    assert resume_problems(saved) == []  # resumed from the checkpoints, not started over
     for run in spec.runs:
         got = read_records(out / run.key / "episodes.csv")
         want = read_records(ref / run.key / "episodes.csv")

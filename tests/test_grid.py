@@ -14,6 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from resume_points import checkpointed_records, resume_problems
 
 from pporpe.batch import BatchConfig
 from pporpe.cli import main
@@ -376,9 +377,11 @@ def test_sigkill_mid_grid_then_resume_gives_complete_identical_records(tmp_path:
     time.sleep(0.5)  # workers die with their parent (PR_SET_PDEATHSIG)
     unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
     assert unfinished, "the kill came too late to test resuming"
+    saved = checkpointed_records(out)
 
     proc = _launch(spec_path, out)
     assert proc.wait(timeout=300) == 0
+    assert resume_problems(saved) == []  # resumed from the checkpoints, not started over
     for run in spec.runs:
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(40))  # no gap, no duplicate
@@ -390,16 +393,26 @@ POP_SPEC = KILL_SPEC.replace("seeds = [0]", "seeds = [0, 1]").replace(
 )
 
 
+@pytest.fixture(scope="module")
+def population_reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``POP_SPEC``'s grid uninterrupted, through one worker's population of two slots: the
+    records the tests that kill it compare with (trained once for them)."""
+    folder = tmp_path_factory.mktemp("population-reference")
+    spec = load_spec(write_spec(folder, POP_SPEC, "pop.toml"))
+    assert reproduce(spec, folder / "ref", workers=1, population=2, progress=False).ok
+    return folder / "ref"
+
+
+@pytest.mark.xdist_group("population-reference")  # one worker, one reference
 def test_sigkill_a_population_then_resume_gives_complete_identical_records(
-    tmp_path: Path,
+    tmp_path: Path, population_reference: Path
 ) -> None:
     """Four runs through one worker's population of two slots (a slot is refilled when its
     run finishes): killed mid-way and restarted, every run's records are complete and
     equal to the uninterrupted grid's with the same packing."""
     spec_path = write_spec(tmp_path, POP_SPEC, "pop.toml")
     spec = load_spec(spec_path)
-    ref = tmp_path / "ref"
-    assert reproduce(spec, ref, workers=1, population=2, progress=False).ok
+    ref = population_reference
     assert len(list((ref / "populations").glob("*/population.json"))) == 1
     args = ("--workers", "1", "--population", "2", "--checkpoint-seconds", "0")
     out = tmp_path / "out"
@@ -419,16 +432,19 @@ def test_sigkill_a_population_then_resume_gives_complete_identical_records(
     time.sleep(0.5)
     unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
     assert unfinished, "the kill came too late to test resuming"
+    saved = checkpointed_records(out)
     proc = _launch(spec_path, out, *args)
     assert proc.wait(timeout=300) == 0
+    assert resume_problems(saved) == []  # resumed from the checkpoints, not started over
     for run in spec.runs:
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(30))
         assert got == records_of(ref, run.key)
 
 
+@pytest.mark.xdist_group("population-reference")
 def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], population_reference: Path
 ) -> None:
     """The population's home folder is named after the runs it packs, so a grid resumed
     with a filter (or after a run finished) plans a new home: the runs in flight in the
@@ -440,8 +456,7 @@ def test_a_grid_resumed_with_another_plan_continues_the_runs_in_flight(
 
     spec_path = write_spec(tmp_path, POP_SPEC, "pop.toml")
     spec = load_spec(spec_path)
-    ref = tmp_path / "ref"
-    assert reproduce(spec, ref, workers=1, population=2, progress=False).ok
+    ref = population_reference
     args = ("--workers", "1", "--population", "2", "--checkpoint-seconds", "0")
     out = tmp_path / "out"
     proc = _launch(spec_path, out, *args)
@@ -623,8 +638,10 @@ def test_sigkill_a_grid_of_batch_runs_then_resume_gives_complete_identical_recor
     time.sleep(0.5)
     unfinished = [r.key for r in spec.runs if not (out / r.key / "done.json").exists()]
     assert unfinished, "the kill came too late to test resuming"
+    saved = checkpointed_records(out)
     proc = _launch(spec_path, out)
     assert proc.wait(timeout=300) == 0
+    assert resume_problems(saved) == []  # resumed from the checkpoints, not started over
     for run in spec.runs:
         got = records_of(out, run.key)
         assert [r.episode for r in got] == list(range(len(got)))

@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import ray  # noqa: F401  - part of the test install (make test installs the ray extra)
+from resume_points import checkpointed_records, resume_problems
 
 from pporpe.experiments.grids.reproduce import reproduce
 from pporpe.experiments.grids.spec import load_spec
 from pporpe.runs.logger import read_records
+
+pytestmark = pytest.mark.xdist_group("ray")  # one worker runs them all, on its one head
 
 SPEC = """
 name = "ray-tiny"
@@ -38,6 +44,54 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+HEADS: dict[str, Path] = {}
+"""Each head's address and the home folder its processes were started with."""
+
+
+def _processes() -> dict[int, tuple[int, bytes]]:
+    """Every process of the machine: its parent's pid and its environment."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            environment = (entry / "environ").read_bytes()
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+        found[int(entry.name)] = (parent, environment)
+    return found
+
+
+def head_processes(address: str) -> list[int]:
+    """The processes of this module's head at ``address``: those started with its home
+    folder (its GCS, raylet, client server, monitors) and all their descendants (its
+    workers). Never another head's: ``ray stop`` and a ``pgrep`` by name would reach every
+    Ray process of the user, another checkout's test session's included."""
+    processes, mark = _processes(), f"\0HOME={HEADS[address]}\0".encode()
+    own = {pid for pid, (_, env) in processes.items() if mark in b"\0" + env + b"\0"}
+    while children := {pid for pid, (parent, _) in processes.items() if parent in own} - own:
+        own |= children
+    return sorted(own - {os.getpid()})
+
+
+def _command(pid: int) -> str:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode("latin-1")
+    return ""
+
+
+def _stop_head(address: str) -> None:
+    """SIGKILL to the head's processes (as ``ray stop --force``), then wait until they are
+    gone (10 s at most)."""
+    deadline = time.monotonic() + 10
+    while (pids := head_processes(address)) and time.monotonic() < deadline:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(0.1)
 
 
 @pytest.fixture(scope="module")
@@ -73,11 +127,13 @@ def ray_head(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         text=True,
         timeout=180,
     )
+    address = f"127.0.0.1:{port}"
+    HEADS[address] = home
     try:
         assert start.returncode == 0, start.stdout + start.stderr
-        yield f"127.0.0.1:{port}"
+        yield address
     finally:
-        subprocess.run([ray_bin, "stop", "--force"], capture_output=True, timeout=120)
+        _stop_head(address)
         if saved_home is None:
             os.environ.pop("HOME", None)
         else:
@@ -114,7 +170,7 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
     from pporpe.runs.population_checkpoint import CHECKPOINT
 
     spec_path = tmp_path / "spec.toml"
-    spec_path.write_text(SPEC.replace("episodes = 3", "episodes = 400"))
+    spec_path.write_text(SPEC.replace("episodes = 3", "episodes = 200"))
     spec = load_spec(spec_path)
     out = tmp_path / "ray"
     outcome: list[object] = []
@@ -127,23 +183,24 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
     killed = False
     for _ in range(1200):  # until the population's first checkpoint, then kill its worker
         if list(out.glob(f"populations/*/{CHECKPOINT}")):
-            workers = subprocess.run(["pgrep", "-f", "ray::run_job"], capture_output=True,
-                                     text=True).stdout.split()  # fmt: skip
+            workers = [pid for pid in head_processes(ray_head) if "ray::run_job" in _command(pid)]
             done_before = len(list(out.glob("*/*/seed*/done.json")))
+            saved = checkpointed_records(out)
             for pid in workers:
-                subprocess.run(["kill", "-9", pid])
+                os.kill(pid, signal.SIGKILL)
             killed = bool(workers)
             break
         grid.join(0.05)
     grid.join(600)
     assert killed and done_before < len(spec.runs), "the worker was not killed mid-task"
     assert outcome and outcome[0].ok  # type: ignore[attr-defined]
+    assert resume_problems(saved) == []  # retried from the checkpoint, not started over
     local = reproduce(spec, tmp_path / "local", backend="local", workers=1, progress=False)
     assert local.ok
     for run in spec.runs:
         got = read_records(out / run.key / "episodes.csv")
         want = read_records(tmp_path / "local" / run.key / "episodes.csv")
-        assert len(got) == 400
+        assert len(got) == 200
         assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]
 
 

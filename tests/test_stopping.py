@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from resume_points import checkpointed_records, resume_problems
 from tiny import tiny_grid_toml
 
 from pporpe.batch import BatchConfig
@@ -188,6 +189,7 @@ def test_ctrl_c_in_train_checkpoints_says_one_line_and_the_same_command_resumes(
     assert len(load_checkpoint(run)["records"]) == episodes == rows(run / "episodes.csv")
     assert not (run / "done.json").exists()
     first = strip_time(read_records(run / "episodes.csv"))
+    saved = checkpointed_records(tmp_path)
 
     proc = launch(*TRAIN, "--out", str(run))  # the same command resumes from there
     wait_for(lambda: rows(run / "episodes.csv") > episodes + 1, proc)
@@ -195,6 +197,7 @@ def test_ctrl_c_in_train_checkpoints_says_one_line_and_the_same_command_resumes(
     code, line = one_line(proc)
     assert code == 130 and "interrupted at episode" in line
     assert strip_time(read_records(run / "episodes.csv"))[:episodes] == first
+    assert resume_problems(saved) == []  # resumed from the checkpoint, not started over
 
 
 GRID = tiny_grid_toml(seeds=(0,), episodes=20000)
