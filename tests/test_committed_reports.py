@@ -1,7 +1,8 @@
 """Every committed grid's report is what ``pporpe report`` writes from its run folders today.
 
 Each folder ``results/<grid>/`` with a ``grid.json`` is copied to a temporary folder of the
-same name with only what the report reads (``grid.json``, the hand-written ``notes.md``, the
+same name with only what the report reads (``grid.json``, the hand-written ``notes.md``, a
+pre-registration (``preregistration.json`` and its document), the
 run folders without checkpoints), ``pporpe report`` runs on the copy through the CLI's entry
 point, and every file it writes must be committed: the text files (``REPORT.md``, the
 summaries, ``runs.csv``) byte for byte, the figures by what they draw (the PDF's page
@@ -26,7 +27,7 @@ from pporpe.cli import main as pporpe_main
 
 ROOT = Path(__file__).resolve().parents[1]
 GRIDS = sorted(p.parent.name for p in (ROOT / "results").glob("*/grid.json"))
-INPUTS = ("grid.json", "notes.md")
+INPUTS = ("grid.json", "notes.md", "preregistration.json", "preregistration.md")
 """The files at the top of a grid's folder that the report reads."""
 NOT_FROM_THE_REPORT = {"status.json", "preregistration.md"}
 """Committed beside a report, written by something else: the grid's status
