@@ -248,16 +248,19 @@ def test_a_video_without_the_renderer_says_what_to_install(tmp_path: Path) -> No
     assert (run / "evaluation.json").exists() == before
 
 
-def test_a_mujoco_task_without_mujoco_says_what_to_install(tmp_path: Path) -> None:
+@pytest.mark.parametrize("gl", [None, "egl"])
+def test_a_mujoco_task_without_mujoco_says_what_to_install(tmp_path: Path, gl: str | None) -> None:
     """Run where ``import mujoco`` fails (a stand-in package that raises ImportError first
-    on the path), as on a machine without the mujoco extra."""
+    on the path), as on a machine without the mujoco extra: whatever ``MUJOCO_GL`` says,
+    the missing package is named, not the OpenGL backend."""
     shadow = tmp_path / "shadow" / "mujoco"
     shadow.mkdir(parents=True)
     (shadow / "__init__.py").write_text("raise ImportError(\"No module named 'mujoco'\")\n")
     path = os.pathsep.join([str(shadow.parent), os.environ.get("PYTHONPATH", "")])
     out = tmp_path / "run"
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"} | {"PYTHONPATH": path}
     proc = launch("train", "--env", "HalfCheetah-v5", "--episodes", "1", "--quiet", "--out",
-                  str(out), env={**os.environ, "PYTHONPATH": path})  # fmt: skip
+                  str(out), env=env | ({"MUJOCO_GL": gl} if gl else {}))  # fmt: skip
     code, line = one_line(proc)
     assert (code, line) == (
         2,

@@ -236,7 +236,9 @@ def check_mujoco_gl(env_name: str) -> None:
     """For a MuJoCo task, with ``MUJOCO_GL`` set: import MuJoCo now. MuJoCo reads
     ``MUJOCO_GL`` on import, and a backend it cannot load (``osmesa`` without libOSMesa, a
     misspelt value) fails there with an AttributeError or RuntimeError; here that is one
-    ``ImportError`` naming ``MUJOCO_GL``. Other tasks never import MuJoCo: nothing to do."""
+    ``ImportError`` naming ``MUJOCO_GL``. An ImportError is MuJoCo itself missing, which
+    building the task names (with what to install). Other tasks never import MuJoCo: nothing
+    to do."""
     import importlib.util
     import os
 
@@ -250,6 +252,8 @@ def check_mujoco_gl(env_name: str) -> None:
         return
     try:
         import mujoco  # noqa: F401
+    except ImportError:  # MuJoCo itself is missing, not its backend: building the task says so
+        return
     except Exception as exc:
         reason = " ".join(str(exc).split())[:160] or "no reason given"
         raise ImportError(
