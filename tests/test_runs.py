@@ -3,6 +3,7 @@ still load, every learner kind records its kind, and a new kind plugs in by regi
 
 from __future__ import annotations
 
+import importlib
 import json
 import shutil
 from dataclasses import dataclass
@@ -40,7 +41,16 @@ from pporpe.runs.loop import run_queue
 from pporpe.runs.migrate import upgrade_config
 
 FIXTURES = Path(__file__).parent / "fixtures"
+kinds_module = importlib.import_module("pporpe.runs.kinds")  # the package's name is a function
 BEHAVIOUR = json.loads((FIXTURES / "behaviour_v0_1.json").read_text())
+
+
+@pytest.fixture(autouse=True)
+def _registered_kinds_end_with_the_test(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The registry of learner kinds is module state: a kind a test registers (the count
+    kind below) is gone after it, so a test that lists the kinds does not see another's."""
+    kinds()  # the built-in kinds registered first: they register once, when imported
+    monkeypatch.setattr(kinds_module, "_KINDS", dict(kinds_module._KINDS))
 
 
 def records_without_time(records: list[Any]) -> list[dict[str, Any]]:
