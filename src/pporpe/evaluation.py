@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .envs import make_env, resolve_env_id
+from .envs.registration import is_gymnasium_mujoco
 from .run_files import read_evaluation
 
 __all__ = [
@@ -247,8 +248,7 @@ def check_mujoco_gl(env_name: str) -> None:
     gl = os.environ.get("MUJOCO_GL")
     if not gl or importlib.util.find_spec("mujoco") is None:
         return
-    entry_point = gymnasium.envs.registry[resolve_env_id(env_name)].entry_point
-    if not (isinstance(entry_point, str) and entry_point.startswith("gymnasium.envs.mujoco")):
+    if not is_gymnasium_mujoco(gymnasium.envs.registry[resolve_env_id(env_name)].entry_point):
         return
     try:
         import mujoco  # noqa: F401

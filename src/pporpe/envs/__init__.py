@@ -71,9 +71,9 @@ from .registration import (
     MUJOCO_LEAN_ENTRY_POINTS,
     MUJOCO_STEP_VARIABLE,
     MUJOCO_STEPS,
+    is_gymnasium_mujoco,
 )
 from .registration import BULLET_PACKAGE as _BULLET_PACKAGE
-from .registration import GYMNASIUM_MUJOCO_PACKAGE as _MUJOCO_ENTRY_POINTS
 
 __all__ = [
     "ALIASES",
@@ -95,7 +95,7 @@ __all__ = [
 
 def _missing_dependency(env_id: str, entry_point: Any, exc: Exception) -> ImportError:
     """The one-line error of a task whose package is not installed, saying what to install."""
-    if isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS):
+    if is_gymnasium_mujoco(entry_point):
         return ImportError(f"{env_id} needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
     reason = (str(exc).strip().splitlines() or ["a package is missing"])[0]
     return ImportError(f"{env_id} cannot be built: {reason}")
@@ -219,7 +219,7 @@ def _spec(env_id: str, bullet_step: str, mujoco_step: str) -> Any:
     if isinstance(entry_point, str) and entry_point.startswith(_BULLET_PACKAGE):
         _import_pybullet_quietly()
         return _bullet_spec(env_id, bullet_step)
-    gymnasiums = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
+    gymnasiums = is_gymnasium_mujoco(entry_point)
     if mujoco_step == "lean" and gymnasiums and env_id in MUJOCO_LEAN_ENTRY_POINTS:
         spec = gymnasium.envs.registry[env_id]
         return dataclasses.replace(spec, entry_point=MUJOCO_LEAN_ENTRY_POINTS[env_id])
@@ -278,7 +278,7 @@ def make_env(
     env_id = resolve_env_id(name)
     spec = _spec(env_id, bullet_step_choice(bullet_step), mujoco_step_choice(mujoco_step))
     entry_point = gymnasium.envs.registry[env_id].entry_point
-    mujoco_task = isinstance(entry_point, str) and entry_point.startswith(_MUJOCO_ENTRY_POINTS)
+    mujoco_task = is_gymnasium_mujoco(entry_point)
     try:
         with _mujoco_warnings_once() if mujoco_task else contextlib.nullcontext():
             env = _make_with_plain_warnings(spec, **kwargs)

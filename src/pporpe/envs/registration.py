@@ -21,6 +21,7 @@ __all__ = [
     "MUJOCO_LEAN_ENTRY_POINTS",
     "MUJOCO_STEPS",
     "MUJOCO_STEP_VARIABLE",
+    "is_gymnasium_mujoco",
 ]
 
 ALIASES: dict[str, str] = {
@@ -55,6 +56,12 @@ one place the error of a MuJoCo task without MuJoCo takes it from."""
 
 GYMNASIUM_MUJOCO_PACKAGE = "gymnasium.envs.mujoco"
 """Where Gymnasium's MuJoCo tasks live (their entry points start with it)."""
+
+
+def is_gymnasium_mujoco(entry_point: object) -> bool:
+    """Whether a registered entry point is one of Gymnasium's MuJoCo tasks (which need the
+    mujoco package, and read ``MUJOCO_GL`` when it is imported)."""
+    return isinstance(entry_point, str) and entry_point.startswith(GYMNASIUM_MUJOCO_PACKAGE)
 
 MUJOCO_STEPS = ("lean", "reference")
 """How Gymnasium's -v4 locomotion tasks are stepped: ``"lean"`` (pporpe's step,
