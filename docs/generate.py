@@ -165,6 +165,12 @@ def paper_claims(
     """(claim, task, rival) -> (P(PPO-RPE > rival) [CI], verdict), from a grid's REPORT.md
     claims table."""
     rows = find_table((root / grid / "REPORT.md").read_text(), "claim", f"{grid}/REPORT.md")
+    return claims_of(rows)
+
+
+def claims_of(rows: list[Row]) -> dict[tuple[str, str, str], tuple[str, str]]:
+    """(claim, task, rival) -> (P(PPO-RPE > rival) [CI], verdict) of a claims table's rows
+    (its header first)."""
     head = rows[0]
     i = {name: head.index(name) for name in ("claim", "task", "rival", "verdict")}
     p = next(k for k, name in enumerate(head) if name.startswith("P(PPO-RPE"))
@@ -263,11 +269,8 @@ def standing_result(root: Path, grid: str) -> dict[str, dict[str, Any]]:
         task = out.setdefault(r[i["task"]], {"means": {}, "seeds": {}, "claims": {}})
         task["means"][(r[i["task"]], r[i["method"]])] = float(r[mean].split()[0])
         task["seeds"][r[i["method"]]] = int(r[i["seeds"]])
-    j = {name: claims[0].index(name) for name in ("claim", "task", "rival", "verdict")}
-    p = next(k for k, name in enumerate(claims[0]) if name.startswith("P(PPO-RPE"))
-    for r in claims[1:]:
-        key = (r[j["claim"]], r[j["task"]], r[j["rival"]])
-        out[r[j["task"]]]["claims"][key] = (r[p], r[j["verdict"]])
+    for key, value in claims_of(claims).items():
+        out[key[1]]["claims"][key] = value
     return out
 
 
