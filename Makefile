@@ -5,18 +5,22 @@
 #                    extras it tests: Ray, SB3, video, docs, MuJoCo)
 #   make docs        the documentation site into docs/_build/html (warnings are errors)
 # Every install goes through constraints.txt, which pins torch to the CPU build 2.13.0.
+# Installs skip pip's byte-compiling of every module it installs (a minute of one core for
+# torch, Ray and the rest); Python writes a module's bytecode on its first import instead,
+# so the recipes here keep it allowed even where PYTHONDONTWRITEBYTECODE is set.
+unexport PYTHONDONTWRITEBYTECODE
 
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-PIP    := $(PY) -m pip install -c constraints.txt
+PIP    := $(PY) -m pip install --no-compile -c constraints.txt
 OUT    ?= results
 
 .PHONY: reproduce reproduce-paper reproduce-paper-full test lint docs docs-pages suite install install-dev bench bench-sb3 clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "pip>=23"
 	$(PIP) --quiet -e .
 	touch $@
 
@@ -24,7 +28,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 # clone's make test resolves and builds once.
 $(VENV)/.installed-dev: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "pip>=23"
 	$(PIP) --quiet -e ".[dev,ray,sb3,video,docs,mujoco]"
 	touch $(VENV)/.installed $(VENV)/.installed-docs $@
 

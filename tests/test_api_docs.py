@@ -6,12 +6,11 @@ from __future__ import annotations
 import os
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+import warm_process
 
 API = Path(__file__).resolve().parents[1] / "docs" / "api.md"
 BLOCKS = re.findall(r"^```python\n(.*?)^```$", API.read_text(), flags=re.S | re.M)
@@ -53,13 +52,12 @@ def test_the_docs_have_their_examples() -> None:
 def test_every_docs_example_runs_on_its_own(page: str, number: int, code: str,
                                             tmp_path: Path) -> None:  # fmt: skip
     """As a reader runs it: the block alone, saved as a file, run by ``python`` in a fresh
-    folder and process (which catches an example that needs an earlier one, or a grid
-    without its ``if __name__ == "__main__":`` guard)."""
+    folder and a process of its own (:mod:`warm_process`), which catches an example that
+    needs an earlier one, or a grid without its ``if __name__ == "__main__":`` guard."""
     script = tmp_path / "example.py"
     script.write_text(code)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
-    done = subprocess.run([sys.executable, script.name], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = warm_process.run([], script=script, cwd=tmp_path, env=env, timeout=600)
     assert done.returncode == 0, f"{page} block {number} failed:\n{done.stderr[-3000:]}"
 
 

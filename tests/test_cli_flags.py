@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 
 import pytest
+import warm_process
 
 from pporpe.batch.config import BatchConfig
 from pporpe.cli import _batch_config, _online_config, _train_flags, build_parser, main
@@ -177,14 +178,8 @@ def test_a_refused_command_line_is_one_line_and_a_hint(
 
 def test_the_console_command_prints_no_usage_block(tmp_path: Path) -> None:
     """What a user sees: argparse printed 40 lines of usage for a wrong --method."""
-    import subprocess
-    import sys
-
-    proc = subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", "train", "--method", "trpo", "--out",
-         str(tmp_path / "x")],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    proc = warm_process.run(["train", "--method", "trpo", "--out", str(tmp_path / "x")],
+                            timeout=120)  # fmt: skip
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.splitlines() == [
         "pporpe train: error: argument --method: invalid choice 'trpo' "

@@ -4,11 +4,10 @@ and where: a task the learners cannot use, a setting in the spec's own section, 
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+import warm_process
 from tiny import tiny_grid_toml
 
 from pporpe.experiments.grids.spec import parse_spec
@@ -17,11 +16,7 @@ SPEC = tiny_grid_toml(episodes=2, checkpoint_every=None)
 
 
 def reproduce(spec: Path, out: Path) -> tuple[int, str]:
-    proc = subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", "reproduce", str(spec), "--out", str(out),
-         "--quiet"],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+    proc = warm_process.run(["reproduce", str(spec), "--out", str(out), "--quiet"], timeout=300)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     return proc.returncode, lines[0]

@@ -6,11 +6,10 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+import warm_process
 from tiny import tiny_grid_toml
 
 from pporpe.experiments.grids.merge import grid_status
@@ -34,10 +33,10 @@ def test_a_chunk_of_a_finished_grid_changes_nothing_on_disk(tmp_path: Path) -> N
     out = tmp_path / "paper"
     shutil.copytree(ROOT / "results" / "paper", out)
     before = digests(out)
-    proc = subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", "reproduce", "experiments/paper.toml", "--out",
-         str(out), "--tasks", "swingup", "--seeds", "0", "1", "--quiet"],
-        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    proc = warm_process.run(
+        ["reproduce", "experiments/paper.toml", "--out", str(out), "--tasks", "swingup",
+         "--seeds", "0", "1", "--quiet"],
+        timeout=300, cwd=ROOT,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "6 runs done (6 were already done), 0 failed" in proc.stdout

@@ -2,10 +2,11 @@
 
 Every hostile folder tried as a new user would (a config.json that imports a module, huge
 or deeply nested values, checkpoints that hold only data but are not pporpe's, crafted
-numpy dtypes, symbolic links out of the folder) is refused through the CLI in a subprocess
-(``pporpe evaluate``, ``pporpe train`` resuming or with ``--force``, ``pporpe report``,
+numpy dtypes, symbolic links out of the folder) is refused through the CLI in a process of
+its own (``pporpe evaluate``, ``pporpe train`` resuming or with ``--force``, ``pporpe report``,
 ``pporpe reproduce``) and through :func:`pporpe.load_policy`: one line on standard error,
-exit status 2, within 10 s of CPU time and 1 GB of memory (a hang that waits instead of
+exit status 2, within 10 s of CPU time and 1 GB of memory (counted from the fork of a
+process that has imported torch: :mod:`warm_process`; a hang that waits instead of
 computing is caught by a wall-clock limit), no marker file, and nothing in the temporary
 tree changed (the folder, and the folder outside it that a link points to).
 A hypothesis strategy then mutates committed config.json, done.json and evaluation.json
@@ -19,10 +20,8 @@ import math
 import os
 import resource
 import shutil
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+import warm_process
 from tiny import tiny_grid_toml
 
 import pporpe
@@ -56,39 +56,31 @@ TRAIN_ARGS = ("train", "--env", "pendulum", "--episodes", "3", "--eval-episodes"
 
 
 # -- running a case ----------------------------------------------------------------------
-def _limit() -> None:
-    resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
-    resource.setrlimit(resource.RLIMIT_CPU, (LIMIT_S, LIMIT_S + 1))
+LIMITS = {
+    resource.RLIMIT_AS: (ADDRESS_SPACE, ADDRESS_SPACE),
+    resource.RLIMIT_CPU: (LIMIT_S, LIMIT_S + 1),
+}
 
 
-def cli(*args: str, cwd: Path, pythonpath: Path | None = None) -> subprocess.CompletedProcess[str]:
-    """``pporpe *args`` in a subprocess limited to :data:`LIMIT_S` CPU seconds, killed as
-    hung after :data:`WALL_S`; its peak resident memory is at most :data:`LIMIT_BYTES`."""
+def cli(*args: str, cwd: Path, pythonpath: Path | None = None) -> warm_process.Finished:
+    """``pporpe *args`` in a process of its own (:mod:`warm_process`: forked warm, torch and
+    the kernels imported) limited to :data:`LIMIT_S` CPU seconds and
+    :data:`ADDRESS_SPACE`, killed as hung after :data:`WALL_S`; its peak resident memory
+    is at most :data:`LIMIT_BYTES`."""
     env = dict(os.environ)
     if pythonpath is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(pythonpath), env.get("PYTHONPATH", "")])
-    command = [sys.executable, "-m", "pporpe.cli", *args]
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        child = subprocess.Popen(command, stdout=out, stderr=err, cwd=cwd, env=env,
-                                 preexec_fn=_limit)  # fmt: skip
-        timer = threading.Timer(WALL_S, child.kill)
-        timer.start()
-        try:
-            _, status, usage = os.wait4(child.pid, 0)  # this child's own resource usage
-        finally:
-            timer.cancel()
-        child.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        proc = subprocess.CompletedProcess(command, child.returncode, out.read().decode(),
-                                           err.read().decode())  # fmt: skip
-    assert child.returncode != -9, f"hung for {WALL_S} s: {proc.stderr[-2000:]}"
-    assert usage.ru_utime + usage.ru_stime <= LIMIT_S, "took more than 10 s of CPU time"
-    assert usage.ru_maxrss * 1024 <= LIMIT_BYTES, f"peak memory {usage.ru_maxrss} kB"
+    proc = warm_process.run(list(args), cwd=cwd, env=env, limits=LIMITS, timeout=WALL_S)
+    assert proc.returncode != -9, f"hung for {WALL_S} s: {proc.stderr[-2000:]}"
+    assert proc.cpu_s is not None, f"killed (exit status {proc.returncode}): {proc.stderr[-2000:]}"
+    assert proc.cpu_s <= LIMIT_S, "took more than 10 s of CPU time"
+    assert proc.max_rss_kb is not None and proc.max_rss_kb * 1024 <= LIMIT_BYTES, (
+        f"peak memory {proc.max_rss_kb} kB"
+    )
     return proc
 
 
-def refused(proc: subprocess.CompletedProcess[str], command: str) -> str:
+def refused(proc: warm_process.Finished, command: str) -> str:
     """The one error line of a refused command (exit status 2)."""
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr[-3000:]
@@ -118,8 +110,7 @@ def snapshot(root: Path) -> dict[str, Any]:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A short online run, unfinished (done.json removed), as ``pporpe train`` writes it."""
     run = tmp_path_factory.mktemp("trained") / "run"
-    proc = subprocess.run([sys.executable, "-m", "pporpe.cli", *TRAIN_ARGS, "--out", str(run)],
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    proc = warm_process.run([*TRAIN_ARGS, "--out", str(run)])
     assert proc.returncode == 0, proc.stderr
     (run / "done.json").unlink()
     return run
@@ -295,7 +286,7 @@ RESUME_SAYS = {"module-import": DIFFERENT_CONFIG, "units 10**9": DIFFERENT_CONFI
                "seed 10**30": DIFFERENT_CONFIG}  # fmt: skip
 
 
-def check_refused(proc: subprocess.CompletedProcess[str], command: str, case: str) -> None:
+def check_refused(proc: warm_process.Finished, command: str, case: str) -> None:
     line = refused(proc, command)
     says = RESUME_SAYS.get(case, CASES[case][1]) if command == "train" else CASES[case][1]
     assert says in line, line

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -16,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+import warm_process
 from tiny import tiny_grid_toml
 
 import pporpe
@@ -50,17 +49,12 @@ def plant(path: Path, marker: Path, legacy: bool = False) -> None:
     torch.save(state, path, _use_new_zipfile_serialization=not legacy)
 
 
-def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=cwd,
-    )
+def cli(*args: str, cwd: Path | None = None) -> warm_process.Finished:
+    """``pporpe ARGS`` in a process of its own (:mod:`warm_process`)."""
+    return warm_process.run(list(args), cwd=cwd, timeout=300)
 
 
-def one_error_line(proc: subprocess.CompletedProcess[str], command: str) -> str:
+def one_error_line(proc: warm_process.Finished, command: str) -> str:
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith(f"pporpe {command}: error: ")

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import warm_process
 
 from pporpe.cli import main
 from pporpe.evaluation import evaluate_policy, summarize_returns
@@ -142,13 +143,9 @@ def test_a_run_in_training_writes_its_live_progress_and_removes_it_at_the_end(
 
 # -- issue 56: one line, every time ---------------------------------------------------------
 def cli(*args: str, env: dict[str, str] | None = None) -> tuple[int, str, list[str]]:
-    """``pporpe ARGS`` in a subprocess, as a user runs it: exit status, standard output and
-    the lines of standard error."""
-    import subprocess
-    import sys
-
-    proc = subprocess.run([sys.executable, "-m", "pporpe.cli", *args], capture_output=True,
-                          text=True, timeout=300, env=env)  # fmt: skip
+    """``pporpe ARGS`` in a process of its own (:mod:`warm_process`), as a user runs it:
+    exit status, standard output and the lines of standard error."""
+    proc = warm_process.run(list(args), env=env, timeout=300)
     return proc.returncode, proc.stdout, proc.stderr.splitlines()
 
 

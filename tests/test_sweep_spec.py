@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 from typing import Any
 
 import pytest
+import warm_process
 
 from pporpe.experiments.grids.merge import write_grid_summary
 from pporpe.experiments.grids.spec import load_spec, parse_spec, select_runs, spec_summary
@@ -199,10 +198,7 @@ def test_the_cli_refuses_a_bad_sweep_in_one_line_before_any_folder(tmp_path: Pat
     spec = tmp_path / "sweep.toml"
     spec.write_text(toml_text(with_sweep({"ppo": {"eps": [0.1, 1.5]}, "rpe": {"eps": [0.1, 0.2]}})))
     out = tmp_path / "out"
-    proc = subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", "reproduce", str(spec), "--out", str(out), "--quiet"],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    proc = warm_process.run(["reproduce", str(spec), "--out", str(out), "--quiet"], timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         f"pporpe reproduce: error: {spec}: sweep.ppo.eps: eps must be a number in the open "

@@ -11,14 +11,13 @@ import math
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from contextlib import redirect_stdout
 from pathlib import Path
 
 import numpy as np
 import pytest
+import warm_process
 from repo_scripts import load_script
 from test_grid import _launch, records_of
 
@@ -198,10 +197,7 @@ def test_a_stage_2_spec_is_refused_without_a_finished_stage_1_or_with_its_seeds(
     assert refusal(chooses).startswith(f"{chooses}: sweep.select: belongs to stage 1")
     # the command: one line, exit 2, nothing written
     out = tmp_path / "eval-out"
-    proc = subprocess.run(
-        [sys.executable, "-m", "pporpe.cli", "reproduce", str(overlap), "--out", str(out)],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    proc = warm_process.run(["reproduce", str(overlap), "--out", str(out)], timeout=120)
     assert proc.returncode == 2 and not out.exists()
     assert proc.stderr.strip().splitlines() == [f"pporpe reproduce: error: {refusal(overlap)}"]
 
