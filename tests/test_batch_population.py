@@ -12,8 +12,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import subprocess
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -23,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+import warm_process
 from resume_points import checkpointed_records, resume_problems
 
 from pporpe.batch import BatchConfig, BatchLearner, train_batch
@@ -364,14 +363,10 @@ steps = 2560
 """
 
 
-def _launch(spec: Path, out: Path) -> subprocess.Popen[bytes]:
+def _launch(spec: Path, out: Path) -> warm_process.Started:
+    """``pporpe reproduce`` as a job of its own (:func:`warm_process.start`)."""
     args = ["--workers", "1", "--population", "2", "--checkpoint-seconds", "0", "--quiet"]
-    return subprocess.Popen(
-        [sys.executable, "-m", "pporpe.cli", "reproduce", str(spec), "--out", str(out), *args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
+    return warm_process.start(["reproduce", str(spec), "--out", str(out), *args])
 
 
 def test_sigkill_a_batch_population_then_resume_gives_the_same_records(tmp_path: Path) -> None:

@@ -7,13 +7,12 @@ import io
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import warm_process
 from resume_points import checkpointed_records, resume_problems
 
 from pporpe.batch import BatchConfig
@@ -334,24 +333,10 @@ episodes = 40
 """
 
 
-def _launch(spec: Path, out: Path, *extra: str) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "pporpe.cli",
-            "reproduce",
-            str(spec),
-            "--out",
-            str(out),
-            "--workers",
-            "2",
-            "--quiet",
-            *extra,
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
+def _launch(spec: Path, out: Path, *extra: str) -> warm_process.Started:
+    """``pporpe reproduce`` as a job of its own (:func:`warm_process.start`)."""
+    return warm_process.start(
+        ["reproduce", str(spec), "--out", str(out), "--workers", "2", "--quiet", *extra]
     )
 
 

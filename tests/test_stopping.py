@@ -13,14 +13,13 @@ import json
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
+import warm_process
 from resume_points import checkpointed_records, resume_problems
 from tiny import tiny_grid_toml
 
@@ -122,29 +121,16 @@ def test_a_population_home_restarted_with_another_queue_continues_the_runs_it_sh
 
 
 # ------------------------------------------------------------------------------------
-# The commands, in a subprocess, as a user sees them
+# The commands, in a process of their own, as a user sees them
 # ------------------------------------------------------------------------------------
-def _default_sigint() -> None:
-    """In the child before it runs: SIGINT handled and delivered as in a terminal's job,
-    whatever the test process inherited or set (an ignored or blocked SIGINT is inherited
-    across exec, and a child that ignores Ctrl-C would train to its end)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+def launch(*args: str, env: dict[str, str] | None = None) -> warm_process.Started:
+    """``pporpe ARGS`` as a terminal's job (:func:`warm_process.start`: a process group of
+    its own, SIGINT handled and delivered as in a terminal, whatever the test process
+    inherited or set)."""
+    return warm_process.start(list(args), env=env)
 
 
-def launch(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "pporpe.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group, as a shell's job
-        env=env,
-        preexec_fn=_default_sigint,
-    )
-
-
-def wait_for(condition: Any, proc: subprocess.Popen[str], seconds: float = 120) -> None:
+def wait_for(condition: Any, proc: warm_process.Started, seconds: float = 120) -> None:
     deadline = time.monotonic() + seconds
     while not condition():
         assert proc.poll() is None, proc.communicate()
@@ -159,7 +145,7 @@ def rows(path: Path) -> int:
         return 0
 
 
-def one_line(proc: subprocess.Popen[str], timeout: float = 120) -> tuple[int, str]:
+def one_line(proc: warm_process.Started, timeout: float = 120) -> tuple[int, str]:
     _, err = proc.communicate(timeout=timeout)
     lines = err.strip().splitlines()
     assert len(lines) == 1, err

@@ -36,6 +36,7 @@ import multiprocessing
 import os
 import resource
 import runpy
+import signal
 import subprocess
 import sys
 import tempfile
@@ -132,6 +133,54 @@ def run(
         )
 
 
+class Started:
+    """A command started by :func:`start`, waited on as :class:`subprocess.Popen` is."""
+
+    def __init__(self, child: Any, folder: str) -> None:
+        self._child = child
+        self._folder = folder
+        self.pid: int = child.pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        """The exit status, or None while it runs."""
+        if self.returncode is None and self._child.exitcode is not None:
+            self.returncode = self._child.exitcode
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for the exit status; :class:`subprocess.TimeoutExpired` after ``timeout``."""
+        self._child.join(timeout)
+        if self.poll() is None:
+            raise subprocess.TimeoutExpired(["pporpe"], timeout or 0.0)
+        return self.returncode  # type: ignore[return-value]
+
+    def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+        """Wait, then what it wrote to standard output and standard error."""
+        self.wait(timeout)
+        out, err = (Path(self._folder, n).read_text(errors="replace") for n in ("out", "err"))
+        return out, err
+
+
+def start(
+    args: list[str], *, cwd: Path | None = None, env: dict[str, str] | None = None
+) -> Started:
+    """``python -m pporpe.cli *args`` started as :func:`run` runs it, in a session and
+    process group of its own (as a shell starts a job, so ``os.killpg(started.pid, ...)``
+    reaches the command and every process it starts), with Python's own Ctrl-C handler."""
+    env = dict(os.environ if env is None else env)
+    assert not _import_time_env_changed(env), "start() cannot change what torch read"
+    _start_the_server()
+    folder = tempfile.mkdtemp(prefix="warm-process-")
+    files = {name: str(Path(folder) / name) for name in ("out", "err", "usage", "session")}
+    child = _CONTEXT.Process(
+        target=_become_the_command,
+        args=(args, None, str(Path(cwd or os.getcwd()).resolve()), env, None, files),
+    )
+    child.start()
+    return Started(child, folder)
+
+
 def _import_time_env_changed(env: dict[str, str]) -> bool:
     keys = {k for k in set(env) | set(os.environ) if k.startswith(IMPORT_TIME_ENV)}
     keys -= set(THREAD_ENV)
@@ -185,6 +234,10 @@ def _become_the_command(
     ARGS``), then write this process's CPU time and peak memory."""
     import warm_process_preload  # the server's, imported already
 
+    if "session" in files:  # start(): a job of its own, interrupted as a terminal would
+        os.setsid()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     for fd, name in ((1, "out"), (2, "err")):
         target = os.open(files[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         os.dup2(target, fd)
