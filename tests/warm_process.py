@@ -248,8 +248,9 @@ def _become_the_command(
     os.environ.clear()
     os.environ.update(env)
     first = str(Path(script).resolve().parent) if script else cwd
-    wanted = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-    sys.path[:] = [first, *wanted, *warm_process_preload.INTERPRETER_PATH]
+    wanted = [os.path.abspath(p) for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    rest = [p for p in warm_process_preload.INTERPRETER_PATH if p not in wanted]
+    sys.path[:] = [first, *wanted, *rest]  # site adds no folder twice
     if env.get("PYTHONWARNINGS") != warm_process_preload.WARNINGS:
         warnings.resetwarnings()
         warnings._processoptions(env.get("PYTHONWARNINGS", "").split(","))  # as at start

@@ -4,7 +4,9 @@ there). Nothing here reads an environment variable that a test sets for one comm
 the prefixes :data:`warm_process.IMPORT_TIME_ENV` names."""
 
 import gc
+import json
 import os
+import subprocess
 import sys
 
 import torch  # noqa: F401
@@ -16,10 +18,15 @@ warm_up()
 WARNINGS = os.environ.get("PYTHONWARNINGS")
 """The warning options the server started with (a child that wants others resets them)."""
 
-INTERPRETER_PATH = [
-    p for p in sys.path[1:] if p not in os.environ.get("PYTHONPATH", "").split(os.pathsep)
-]
-"""The folders a fresh interpreter searches besides its first and ``PYTHONPATH``'s: the
-standard library and site-packages (with what their ``.pth`` files add)."""
+INTERPRETER_PATH: list[str] = json.loads(
+    subprocess.run(
+        [sys.executable, "-c", "import json, sys; print(json.dumps(sys.path[1:]))"],
+        env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
+        capture_output=True, text=True, check=True,
+    ).stdout
+)  # fmt: skip
+"""The folders a fresh interpreter searches after its first and ``PYTHONPATH``'s: the
+standard library and site-packages, with what their ``.pth`` files add (as this
+interpreter, started without ``PYTHONPATH``, lists them)."""
 
 gc.freeze()  # the children's collections leave these objects (and their pages) alone
