@@ -41,7 +41,10 @@ def both(script: Path, args: list[str], cwd: Path, env: dict[str, str]) -> list[
     return [(p.returncode, p.stdout, p.stderr) for p in (fresh, warm)]
 
 
-def test_a_script_sees_what_a_fresh_interpreter_shows_it(tmp_path: Path) -> None:
+@pytest.mark.parametrize("base", ["inherited", "absent", "relative"])
+def test_a_script_sees_what_a_fresh_interpreter_shows_it(tmp_path: Path, base: str) -> None:
+    """With this process's ``PYTHONPATH`` after a folder of the test's, with none (an
+    empty entry: the working folder), and with a relative one."""
     script = tmp_path / "view.py"
     script.write_text(VIEW)
     extra = tmp_path / "extra"
@@ -49,7 +52,9 @@ def test_a_script_sees_what_a_fresh_interpreter_shows_it(tmp_path: Path) -> None
     (extra / "evil_probe.py").write_text("raise SystemExit('imported')\n")
     env = {
         **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(extra), os.environ.get("PYTHONPATH", "")]),
+        "PYTHONPATH": os.pathsep.join([str(extra), {
+            "inherited": os.environ.get("PYTHONPATH", ""), "absent": "", "relative": "extra"
+        }[base]]),
         "PPORPE_PROBE": "1",
         "OMP_NUM_THREADS": "1",
         "PYTHONWARNINGS": "ignore",

@@ -248,9 +248,13 @@ def _become_the_command(
     os.environ.clear()
     os.environ.update(env)
     first = str(Path(script).resolve().parent) if script else cwd
-    wanted = [os.path.abspath(p) for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-    rest = [p for p in warm_process_preload.INTERPRETER_PATH if p not in wanted]
-    sys.path[:] = [first, *wanted, *rest]  # site adds no folder twice
+    given = env.get("PYTHONPATH", "")  # an empty entry of a set one is the working folder
+    wanted = [os.path.abspath(p) for p in given.split(os.pathsep)] if given else []
+    rest: list[str] = []  # made absolute and each once, as site.removeduppaths leaves them
+    for folder in (*wanted, *warm_process_preload.INTERPRETER_PATH):
+        if os.path.abspath(folder) not in rest:
+            rest.append(os.path.abspath(folder))
+    sys.path[:] = [first, *rest]
     if env.get("PYTHONWARNINGS") != warm_process_preload.WARNINGS:
         warnings.resetwarnings()
         warnings._processoptions(env.get("PYTHONWARNINGS", "").split(","))  # as at start
