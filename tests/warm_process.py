@@ -24,8 +24,9 @@ What differs from a fresh interpreter, and where a test must not use this:
   modules is, as it is in a process that imported them);
 - ``PYTHONWARNINGS`` and the thread counts (:data:`THREAD_ENV`) are applied as the
   interpreter and torch would have at start;
-- a test of what a signal does to the process, or of the process tree, keeps using
-  :mod:`subprocess`.
+- a test of the interpreter's start itself (what a cold process imports, say) keeps using
+  :mod:`subprocess`. A test that signals or kills the command and its workers takes
+  :func:`start`: a process group of its own, as a shell starts a job.
 """
 
 from __future__ import annotations
@@ -109,28 +110,42 @@ def run(
     env = dict(os.environ if env is None else env)
     if _import_time_env_changed(env):
         return _subprocess(args, script, cwd, env, limits, timeout)
-    cwd = Path(cwd or os.getcwd()).resolve()
-    _start_the_server()
-    with tempfile.TemporaryDirectory() as tmp:
-        files = {name: str(Path(tmp) / name) for name in ("out", "err", "usage")}
-        child = _CONTEXT.Process(
-            target=_become_the_command,
-            args=(args, None if script is None else str(script), str(cwd), env, limits, files),
-        )
-        child.start()
+    with tempfile.TemporaryDirectory() as folder:
+        child = _fork(args, script, cwd, env, limits, folder, session=False)
         child.join(timeout)
         if child.is_alive():
             child.kill()
             child.join()
-        usage = _read_json(files["usage"])
+        usage = _read_json(str(Path(folder, "usage")))
         return Finished(
             args=list(args),
             returncode=child.exitcode if child.exitcode is not None else -9,
-            stdout=Path(files["out"]).read_text(errors="replace"),
-            stderr=Path(files["err"]).read_text(errors="replace"),
+            stdout=Path(folder, "out").read_text(errors="replace"),
+            stderr=Path(folder, "err").read_text(errors="replace"),
             cpu_s=usage.get("cpu_s"),
             max_rss_kb=usage.get("max_rss_kb"),
         )
+
+
+def _fork(
+    args: list[str],
+    script: Path | None,
+    cwd: Path | None,
+    env: dict[str, str],
+    limits: dict[int, tuple[int, int]] | None,
+    folder: str,
+    session: bool,
+) -> Any:
+    """The command's process, started from the server; its streams and usage go to files
+    in ``folder`` (``out``, ``err``, ``usage``)."""
+    _start_the_server()
+    where = str(Path(cwd or os.getcwd()).resolve())
+    child = _CONTEXT.Process(
+        target=_become_the_command,
+        args=(args, None if script is None else str(script), where, env, limits, folder, session),
+    )
+    child.start()
+    return child
 
 
 class Started:
@@ -170,15 +185,8 @@ def start(
     reaches the command and every process it starts), with Python's own Ctrl-C handler."""
     env = dict(os.environ if env is None else env)
     assert not _import_time_env_changed(env), "start() cannot change what torch read"
-    _start_the_server()
     folder = tempfile.mkdtemp(prefix="warm-process-")
-    files = {name: str(Path(folder) / name) for name in ("out", "err", "usage", "session")}
-    child = _CONTEXT.Process(
-        target=_become_the_command,
-        args=(args, None, str(Path(cwd or os.getcwd()).resolve()), env, None, files),
-    )
-    child.start()
-    return Started(child, folder)
+    return Started(_fork(args, None, cwd, env, None, folder, session=True), folder)
 
 
 def _import_time_env_changed(env: dict[str, str]) -> bool:
@@ -228,18 +236,19 @@ def _become_the_command(
     cwd: str,
     env: dict[str, str],
     limits: dict[int, tuple[int, int]] | None,
-    files: dict[str, str],
+    folder: str,
+    session: bool,
 ) -> None:
     """In the forked child: become ``python -m pporpe.cli ARGS`` (or ``python SCRIPT
     ARGS``), then write this process's CPU time and peak memory."""
     import warm_process_preload  # the server's, imported already
 
-    if "session" in files:  # start(): a job of its own, interrupted as a terminal would
+    if session:  # start(): a job of its own, interrupted as a terminal would
         os.setsid()
         signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     for fd, name in ((1, "out"), (2, "err")):
-        target = os.open(files[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        target = os.open(Path(folder, name), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         os.dup2(target, fd)
         os.close(target)
     sys.stdout = open(1, "w", closefd=False, buffering=1)
@@ -251,9 +260,9 @@ def _become_the_command(
     given = env.get("PYTHONPATH", "")  # an empty entry of a set one is the working folder
     wanted = [os.path.abspath(p) for p in given.split(os.pathsep)] if given else []
     rest: list[str] = []  # made absolute and each once, as site.removeduppaths leaves them
-    for folder in (*wanted, *warm_process_preload.INTERPRETER_PATH):
-        if os.path.abspath(folder) not in rest:
-            rest.append(os.path.abspath(folder))
+    for entry in map(os.path.abspath, (*wanted, *warm_process_preload.INTERPRETER_PATH)):
+        if entry not in rest:
+            rest.append(entry)
     sys.path[:] = [first, *rest]
     if env.get("PYTHONWARNINGS") != warm_process_preload.WARNINGS:
         warnings.resetwarnings()
@@ -272,7 +281,7 @@ def _become_the_command(
             runpy.run_path(script, run_name="__main__")
     finally:
         atexit._run_exitfuncs()
-        _write_usage(files["usage"])
+        _write_usage(str(Path(folder, "usage")))
 
 
 def _write_usage(path: str) -> None:
