@@ -4,6 +4,8 @@ checkpoint's records in the form they always had."""
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -137,6 +139,59 @@ def test_a_missing_diagnostic_or_return_is_refused(row: str, tmp_path: Path) -> 
     path = tmp_path / "episodes.csv"
     path.write_text(f"{HEADER}\n{row}\n")
     with pytest.raises(ValueError, match=r"cannot be read as an episodes\.csv"):
+        read_records(path)
+
+
+def reference_records(text: str) -> list[EpisodeRecord]:
+    """``episodes.csv`` read the plain way: csv.DictReader, an empty cell None, every
+    number converted by the record's own constructor."""
+    rows = csv.DictReader(io.StringIO(text, newline=""))
+    cells = [{k: None if v == "" else v for k, v in row.items() if k in OLD_KEYS} for row in rows]
+    return [EpisodeRecord.from_row(c) for c in cells]
+
+
+@pytest.mark.parametrize(
+    "layout", ["as written", "columns reordered", "a column more", "blank lines, CRLF"]
+)
+def test_the_reader_reads_what_a_dict_reader_reads(layout: str, tmp_path: Path) -> None:
+    """read_records (a column index and a row at a time) against csv.DictReader and
+    EpisodeRecord.from_row, on files laid out otherwise than RunLogger writes them."""
+    lines = [
+        HEADER,
+        "0,10,0.5,10,0.1,0.2,,0.3,1.0",
+        "1,25,-2.0,15,,,,,2.5",
+        "2,31,1e3,6,1,0,0.5,2,3",
+    ]
+    rows = [line.split(",") for line in lines]
+    if layout == "columns reordered":
+        rows = [row[::-1] for row in rows]
+    if layout == "a column more":
+        rows = [[*row, "note" if i == 0 else "x"] for i, row in enumerate(rows)]
+    end = "\r\n\r\n" if layout == "blank lines, CRLF" else "\n"
+    text = end.join(",".join(row) for row in rows) + end
+    (tmp_path / "episodes.csv").write_text(text, newline="")
+    got = read_records(tmp_path / "episodes.csv")
+    assert got == reference_records(text) and len(got) == 3
+    assert got[0].diagnostics == SurrogateDiagnostics(0.1, 0.2, 0.3, None)
+    assert got[1].diagnostics is None and got[2].ret == 1000.0
+
+
+@pytest.mark.parametrize(("row", "why"), [
+    ("0,10,0.5,10,0.1,0.2", "the row has no trace_decay cell"),
+    ("0,10,x,10,,,,,1.0", "could not convert string to float: 'x'"),
+    ("-1,10,0.5,10,,,,,1.0", "a count out of range: -1"),
+])  # fmt: skip
+def test_a_short_or_wrong_row_is_refused_naming_the_cell(
+    row: str, why: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "episodes.csv"
+    path.write_text(f"{HEADER}\n{row}\n")
+    with pytest.raises(
+        ValueError, match=f"episodes\\.csv cannot be read as an episodes\\.csv .*{why}"
+    ):
+        read_records(path)
+    path.write_text(HEADER.replace("ratio_dev", "ratio") + "\n0,10,0.5,10,,,,,1.0\n")
+    with pytest.raises(ValueError, match="KeyError: 'ratio_dev'"):
         read_records(path)
 
 

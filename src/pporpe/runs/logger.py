@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Callable, Mapping
+import itertools
+import operator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -88,26 +90,31 @@ class EpisodeRecord:
         are None; ``trace_decay`` None when it alone is (``ValueError`` when another one
         alone is missing; ``KeyError`` for a missing column)."""
         reg, past, dev, trace = (row[name] for name in _DIAGNOSTIC_COLUMNS)
-        diagnostics = None
-        if (reg, past, dev) != (None, None, None):
-            if None in (reg, past, dev):
-                raise ValueError("reg_amount, past_threshold and ratio_dev go together")
-            diagnostics = SurrogateDiagnostics(
-                reg_amount=float(reg),
-                past_threshold=float(past),
-                ratio_dev=float(dev),
-                trace_decay=None if trace is None else float(trace),
-            )
-        elif trace is not None:
-            raise ValueError("a trace_decay without reg_amount, past_threshold, ratio_dev")
         return cls(
             episode=int(row["episode"]),
             total_steps=int(row["total_steps"]),
             ret=float(row["ret"]),
             length=int(row["length"]),
             wall_time=float(row["wall_time"]),
-            diagnostics=diagnostics,
+            diagnostics=_diagnostics(reg, past, dev, trace),
         )
+
+
+def _diagnostics(reg: Any, past: Any, dev: Any, trace: Any) -> SurrogateDiagnostics | None:
+    """A record's diagnostics from its four cells: None when all four are None;
+    ``trace_decay`` None when it alone is; ``ValueError`` when another one alone is."""
+    if (reg, past, dev) != (None, None, None):
+        if None in (reg, past, dev):
+            raise ValueError("reg_amount, past_threshold and ratio_dev go together")
+        return SurrogateDiagnostics(
+            reg_amount=float(reg),
+            past_threshold=float(past),
+            ratio_dev=float(dev),
+            trace_decay=None if trace is None else float(trace),
+        )
+    if trace is not None:
+        raise ValueError("a trace_decay without reg_amount, past_threshold, ratio_dev")
+    return None
 
 
 def records_to_csv(records: list[EpisodeRecord]) -> str:
@@ -119,15 +126,6 @@ def records_to_csv(records: list[EpisodeRecord]) -> str:
     for rec in records:
         writer.writerow(rec.row())
     return buf.getvalue()
-
-
-def _cell(name: str, text: str | None) -> int | float | None:
-    """One CSV cell's value: None for an empty diagnostic cell."""
-    if text is None:
-        raise ValueError(f"the row has no {name} cell")
-    if text == "" and name in _DIAGNOSTIC_COLUMNS:
-        return None
-    return _count(text) if name in _INT_COLUMNS else float(text)
 
 
 def _count(text: str) -> int:
@@ -147,22 +145,52 @@ def read_records(path: str | Path) -> list[EpisodeRecord]:
     no eligibility traces). Batch run folders written while batch runs filled that cell
     with 1.0 read 1.0, as written (see :mod:`pporpe.runs.migrate`).
     """
-    return _read_rows(
-        path,
-        "episodes.csv",
-        lambda row: EpisodeRecord.from_row({name: _cell(name, row[name]) for name in COLUMNS}),
-    )
+    return _read_rows(path, "episodes.csv", _records)
 
 
-def _read_rows(path: str | Path, what: str, parse: Callable[[dict[str, str]], T]) -> list[T]:
-    """Every row of the CSV file ``path`` read by ``parse``; ``ValueError`` naming the file
+def _records(header: list[str], rows: Iterator[list[str]]) -> list[EpisodeRecord]:
+    """The records of the rows of an ``episodes.csv`` under its ``header`` (``KeyError`` for
+    a missing column, ``ValueError`` for a short row or a cell that is no number), each
+    row's cells read in the order of :data:`COLUMNS`."""
+    first = next(rows, None)
+    if first is None:
+        return []
+    at = {name: i for i, name in enumerate(header)}  # the last of a repeated name, as csv's
+    where = [at[name] for name in COLUMNS]
+    cells_of, last = operator.itemgetter(*where), max(where)
+    out = []
+    for row in itertools.chain([first], rows):
+        if len(row) <= last:  # csv.DictReader would fill the cells missing with None
+            short = next(name for name, i in zip(COLUMNS, where, strict=True) if i >= len(row))
+            raise ValueError(f"the row has no {short} cell")
+        ep, steps, ret, length, reg, past, trace, dev, wall = cells_of(row)
+        episode, total_steps, ret_value, length_value = (
+            _count(ep), _count(steps), float(ret), _count(length)
+        )  # fmt: skip
+        reg_v, past_v, trace_v, dev_v = (
+            None if reg == "" else float(reg), None if past == "" else float(past),
+            None if trace == "" else float(trace), None if dev == "" else float(dev),
+        )  # fmt: skip
+        diagnostics = _diagnostics(reg_v, past_v, dev_v, trace_v)
+        out.append(EpisodeRecord(
+            episode, total_steps, ret_value, length_value, float(wall), diagnostics
+        ))  # fmt: skip
+    return out
+
+
+def _read_rows(
+    path: str | Path, what: str, parse: Callable[[list[str], Iterator[list[str]]], list[T]]
+) -> list[T]:
+    """The rows of the CSV file ``path`` read by ``parse`` (given the header and the other
+    rows, blank lines skipped, as ``csv.DictReader`` does); ``ValueError`` naming the file
     as not readable as ``what`` (missing, torn, not a regular file, larger than
     :data:`~pporpe.limits.MAX_CSV_BYTES`, a missing column, a cell that is no number)."""
     remedy = "a resumed run rewrites it from its checkpoint"
     raw = read_regular_file(path, MAX_CSV_BYTES, remedy)
     try:
-        text = raw.decode("utf-8")
-        return [parse(row) for row in csv.DictReader(io.StringIO(text, newline=""))]
+        rows = csv.reader(io.StringIO(raw.decode("utf-8"), newline=""))
+        header = next(rows, None)
+        return [] if header is None else parse(header, (row for row in rows if row))
     except (UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise ValueError(
             f"{path} cannot be read as an {what} ({type(exc).__name__}: {exc}); {remedy}"
@@ -222,11 +250,18 @@ def read_updates(path: str | Path) -> list[LoggedUpdate]:
     """Read an ``updates.csv`` written by :class:`RunLogger` (``ValueError`` naming the file
     if a required column is missing or a cell is not a number). An empty cell reads as NaN
     (a statistic an update could not compute)."""
-    return _read_rows(
-        path,
-        "updates.csv",
-        lambda row: LoggedUpdate.from_row({k: "nan" if v == "" else v for k, v in row.items()}),
-    )
+    return _read_rows(path, "updates.csv", _updates)
+
+
+def _updates(header: list[str], rows: Iterator[list[str]]) -> list[LoggedUpdate]:
+    """The logged updates of the rows of an ``updates.csv`` under its ``header``."""
+    out = []
+    for row in rows:
+        if len(row) != len(header):
+            raise ValueError(f"a row of {len(row)} cells under a header of {len(header)}")
+        cells = {k: "nan" if v == "" else v for k, v in zip(header, row, strict=True)}
+        out.append(LoggedUpdate.from_row(cells))
+    return out
 
 
 class RunLogger:
