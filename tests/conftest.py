@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import warm_process
 from hypothesis import settings
 from kernels_once import COMPILED_HASH
 
@@ -36,3 +37,11 @@ def pytest_configure(config: pytest.Config) -> None:
         said = done.stdout.split()
         if done.returncode == 0 and len(said) == 2 and said[0] == "compiled":
             os.environ[COMPILED_HASH] = said[1]  # the workers inherit it
+
+
+@pytest.fixture(autouse=True, scope="session")
+def warm_server_first() -> None:
+    """:mod:`warm_process`'s server started before the first test of this process: it is the
+    process's one forkserver, which a grid's local pool run by a test shares (a pool that
+    started it first would leave it without what warm_process's commands need)."""
+    warm_process.start_the_server()

@@ -260,6 +260,7 @@ def tiny_grid(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
+@pytest.mark.xdist_group("tiny-batch-grid")  # one worker trains it once
 def test_a_tiny_batch_grid_reports_by_steps_and_over_tasks(tiny_grid: Path) -> None:
     out = tiny_grid / "results" / "batch-mujoco"
     assert is_batch_grid(out) and not is_batch_grid(ROOT / "results" / "paper")
@@ -283,6 +284,7 @@ def test_a_tiny_batch_grid_reports_by_steps_and_over_tasks(tiny_grid: Path) -> N
     assert len(runs) == 1 + 12
 
 
+@pytest.mark.xdist_group("tiny-batch-grid")  # one worker trains it once
 def test_the_docs_page_and_readme_rows_of_the_batch_grid(tiny_grid: Path) -> None:
     gen = docs_generator()
     stub = gen.batch_mujoco_page(tiny_grid / "absent")

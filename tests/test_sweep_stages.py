@@ -91,6 +91,7 @@ def expected_selection(out: Path) -> dict[str, float]:
     return chosen
 
 
+@pytest.mark.xdist_group("tinysweep")  # one worker trains the sweep once
 def test_stage_1_reports_the_sensitivity_and_writes_the_stage_2_spec(stage1: Path) -> None:
     assert sorted(p.name for p in (stage1 / "Pendulum-v1").iterdir()) == [
         "ppo-lr0.0001", "ppo-lr0.03", "rpe-lr0.0001", "rpe-lr0.03"
@@ -126,6 +127,7 @@ def test_stage_1_reports_the_sensitivity_and_writes_the_stage_2_spec(stage1: Pat
         assert run.config == type(run.config)(**{**vars(first.config), "seed": run.seed})
 
 
+@pytest.mark.xdist_group("tinysweep")  # one worker trains the sweep once
 def test_stage_2_runs_the_selection_on_fresh_seeds_and_gets_the_grids_report(
     stage1: Path,
 ) -> None:
@@ -150,6 +152,7 @@ def test_stage_2_runs_the_selection_on_fresh_seeds_and_gets_the_grids_report(
     assert not (out / "selected.toml").exists()
 
 
+@pytest.mark.xdist_group("tinysweep")  # one worker trains the sweep once
 def test_a_sweeps_runs_are_collected_and_found_as_committed_runs(
     stage1: Path, tmp_path: Path
 ) -> None:
@@ -175,6 +178,7 @@ def refusal(spec: Path) -> str:
     return str(info.value)
 
 
+@pytest.mark.xdist_group("tinysweep")  # one worker trains the sweep once
 def test_a_stage_2_spec_is_refused_without_a_finished_stage_1_or_with_its_seeds(
     stage1: Path, tmp_path: Path
 ) -> None:
@@ -202,6 +206,7 @@ def test_a_stage_2_spec_is_refused_without_a_finished_stage_1_or_with_its_seeds(
     assert proc.stderr.strip().splitlines() == [f"pporpe reproduce: error: {refusal(overlap)}"]
 
 
+@pytest.mark.xdist_group("tinysweep")  # one worker trains the sweep once
 def test_an_unfinished_stage_1_selects_nothing_and_refuses_its_stage_2(
     stage1: Path, tmp_path: Path
 ) -> None:
@@ -271,6 +276,7 @@ def assert_same_as_uninterrupted(spec: GridSpec, out: Path, ref: Path) -> None:
         assert (out / run.key / "updates.csv").read_text().count("\n") == 1 + 20  # 20 updates
 
 
+@pytest.mark.xdist_group("killsweep")  # one worker, one reference
 def test_a_sweep_cell_killed_mid_run_resumes_with_complete_identical_records(
     kill_reference: tuple[Path, Path], tmp_path: Path
 ) -> None:
@@ -294,6 +300,7 @@ def test_a_sweep_cell_killed_mid_run_resumes_with_complete_identical_records(
     assert_same_as_uninterrupted(spec, out, ref)
 
 
+@pytest.mark.xdist_group("killsweep")  # one worker, one reference
 def test_a_sweep_stopped_as_by_ctrl_c_resumes_with_complete_identical_records(
     kill_reference: tuple[Path, Path], tmp_path: Path
 ) -> None:

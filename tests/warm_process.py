@@ -62,11 +62,17 @@ _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(PRELOAD)
 
 
-def _start_the_server() -> None:
-    """Start the server with this folder on its ``PYTHONPATH`` (where it finds
-    :data:`PRELOAD`: Python 3.11's forkserver imports it before it applies the caller's
-    ``sys.path``, and skips a module it cannot import), and with this process's
-    environment otherwise."""
+def start_the_server() -> None:
+    """Start the server, if it is not running, with this folder on its ``PYTHONPATH``
+    (where it finds :data:`PRELOAD`: Python 3.11's forkserver imports it before it applies
+    the caller's ``sys.path``, and skips a module it cannot import), and with this
+    process's environment otherwise.
+
+    It is this process's one forkserver: a grid's local pool started by a test forks its
+    workers from it as well (pporpe's own preload, a subset of :data:`PRELOAD`, is then
+    not used), so ``conftest.py`` starts it before the first test, and :data:`PRELOAD` is
+    set again here in case a pool set its own."""
+    _CONTEXT.set_forkserver_preload(PRELOAD)
     before = os.environ.get("PYTHONPATH")
     here = str(Path(__file__).resolve().parent)
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (here, before) if p)
@@ -138,7 +144,7 @@ def _fork(
 ) -> Any:
     """The command's process, started from the server; its streams and usage go to files
     in ``folder`` (``out``, ``err``, ``usage``)."""
-    _start_the_server()
+    start_the_server()
     where = str(Path(cwd or os.getcwd()).resolve())
     child = _CONTEXT.Process(
         target=_become_the_command,

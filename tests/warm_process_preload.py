@@ -1,4 +1,5 @@
-"""What :mod:`warm_process`'s server imports before it forks a command: torch, and the
+"""What :mod:`warm_process`'s server imports before it forks a command: torch, what torch
+imports when its first optimizer is built (``torch._dynamo``, about 3 s alone), and the
 fused engine's kernels loaded from numba's cache (compiled into it first if they are not
 there). Nothing here reads an environment variable that a test sets for one command, bar
 the prefixes :data:`warm_process.IMPORT_TIME_ENV` names."""
@@ -9,11 +10,12 @@ import os
 import subprocess
 import sys
 
-import torch  # noqa: F401
+import torch
 
 from pporpe.online.fused_engine import warm_up
 
 warm_up()
+torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # its first one imports torch._dynamo
 
 WARNINGS = os.environ.get("PYTHONWARNINGS")
 """The warning options the server started with (a child that wants others resets them)."""

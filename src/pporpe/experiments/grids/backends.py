@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import multiprocessing
 import os
 import signal
 import sys
@@ -127,15 +128,19 @@ def run_job(
         return [_done_or(path, {"status": "failed", "error": _failure(exc)}) for path in paths]
 
 
-def _worker_init(stop: Any = None) -> None:
-    """Pool initializer: die with the parent, leave Ctrl-C to it, and keep C-level chatter
-    off the terminal.
+def _worker_init(stop: Any = None, environ: dict[str, str] | None = None) -> None:
+    """Pool initializer: take the grid process's environment, die with the pool, leave
+    Ctrl-C to the parent, and keep C-level chatter off the terminal.
 
-    The worker gets SIGKILL when the parent process dies (Linux). It ignores SIGINT and
-    SIGTERM (a terminal or a scheduler sends them to every process of the job): the parent
-    asks it to stop through ``stop`` (kept in :data:`_STOP`), at a safe point. Its
-    standard output goes to /dev/null at the descriptor level (PyBullet prints from C on
-    every connection); tracebacks of failed runs are still written to their ``error.txt``.
+    ``environ`` is the grid process's environment when it started the pool (a worker forked
+    from the pool's server would otherwise have the server's, from when the server
+    started); torch gets the thread count a process started with it would have. The worker
+    gets SIGKILL when its parent (the pool's server, which ends with the grid process) dies
+    (Linux). It ignores SIGINT and SIGTERM (a terminal or a scheduler sends them to every
+    process of the job): the parent asks it to stop through ``stop`` (kept in
+    :data:`_STOP`), at a safe point. Its standard output goes to /dev/null at the
+    descriptor level (PyBullet prints from C on every connection); tracebacks of failed
+    runs are still written to their ``error.txt``.
     """
     global _STOP
     _STOP = stop
@@ -146,11 +151,33 @@ def _worker_init(stop: Any = None) -> None:
 
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if environ is not None:
+        os.environ.clear()
+        os.environ.update(environ)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if "torch" in sys.modules:  # imported by the server: its threads as OMP_NUM_THREADS says
+        with contextlib.suppress(ValueError, RuntimeError):
+            sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     with contextlib.suppress(OSError):
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, 1)
         os.close(devnull)
+
+
+POOL_PRELOAD = ["pporpe.experiments.grids.pool_preload"]
+"""What the pool's server imports before it forks a worker (:mod:`.pool_preload`)."""
+
+
+def _pool_context() -> Any:
+    """The local pool's start method: workers forked from one server process that imported
+    :data:`POOL_PRELOAD` (``forkserver``: one process pays for the imports, not every
+    worker), or started fresh (``spawn``) where there is no forkserver (Windows, macOS
+    builds without it). The server is one per grid process, started at its first pool."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return get_context("spawn")
+    ctx = get_context("forkserver")
+    ctx.set_forkserver_preload(POOL_PRELOAD)
+    return ctx
 
 
 def _interrupted(job: Job) -> list[dict[str, Any]]:
@@ -166,14 +193,17 @@ def run_local(
     stop: Callable[[], bool] | None = None,
     checkpoint_within: float = CHECKPOINT_WITHIN_S,
 ) -> list[dict[str, Any]]:
-    """Run ``jobs`` on a pool of ``workers`` spawned processes; every job's run statuses.
+    """Run ``jobs`` on a pool of ``workers`` processes (:func:`_pool_context`); every job's
+    run statuses.
     When ``stop()`` turns True (Ctrl-C), the running jobs stop at a safe point with their
     checkpoints and the others are cancelled: their runs are ``"interrupted"``. The jobs
     write their runs' live progress when the bar reads it (:attr:`GridProgress.live_seconds`)."""
     results: list[dict[str, Any]] = []
-    ctx = get_context("spawn")
+    ctx = _pool_context()
     event = ctx.Event()
-    pool = ProcessPoolExecutor(workers, ctx, initializer=_worker_init, initargs=(event,))
+    pool = ProcessPoolExecutor(
+        workers, ctx, initializer=_worker_init, initargs=(event, dict(os.environ))
+    )
     try:
         cadence = (checkpoint_seconds, checkpoint_within, progress.live_seconds)
         futures = {pool.submit(run_job, j.home, j.runs, j.population, *cadence): j for j in jobs}
