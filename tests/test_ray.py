@@ -170,7 +170,7 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
     from pporpe.runs.population_checkpoint import CHECKPOINT
 
     spec_path = tmp_path / "spec.toml"
-    spec_path.write_text(SPEC.replace("episodes = 3", "episodes = 200"))
+    spec_path.write_text(SPEC.replace("episodes = 3", "episodes = 80"))
     spec = load_spec(spec_path)
     out = tmp_path / "ray"
     outcome: list[object] = []
@@ -200,7 +200,7 @@ def test_a_ray_worker_killed_mid_task_is_retried_from_its_checkpoint(
     for run in spec.runs:
         got = read_records(out / run.key / "episodes.csv")
         want = read_records(tmp_path / "local" / run.key / "episodes.csv")
-        assert len(got) == 200
+        assert len(got) == 80
         assert [replace(r, wall_time=0.0) for r in got] == [replace(r, wall_time=0.0) for r in want]
 
 
