@@ -26,7 +26,6 @@ import json
 import os
 import re
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -125,7 +124,8 @@ def measure(args: argparse.Namespace) -> None:
             print(json.dumps(trials[-1]), flush=True)
     study = {
         "title": args.title,
-        "how": (f"`python benchmarks/test_suite.py measure` ({' '.join(sys.argv[2:])}): per "
+        "how": (f"`python benchmarks/test_suite.py measure --run {' --run '.join(args.run)} "
+                f"--order {args.order}` (and the texts below): per "
                 "trial `git clone` and `git checkout`, then `make .venv/.installed-dev` (the "
                 "install: a new venv, pip from its local cache) and `make test`, each timed "
                 "by /usr/bin/time (wall; CPU = user + sys of make and every process it "
@@ -135,7 +135,7 @@ def measure(args: argparse.Namespace) -> None:
         "labels": {label: desc for label, desc in (d.split("=", 1) for d in args.describe)},
         "held": args.held,
         "trials": trials,
-        "ratios": [[args.order[-1], args.order[0]]] if len(runs) == 2 else [],
+        "ratios": [[args.order[1], args.order[0]]] if len(runs) == 2 else [],
         "durations_of": [t["label"] for t in trials[-len(runs):]],
         "machine": trials[-1].pop("machine"),
     }  # fmt: skip
@@ -170,17 +170,25 @@ def _trial_row(t: dict[str, Any]) -> str:
 
 
 def _ratio_line(study: dict[str, Any], after: str, before: str) -> str:
-    a = next(t for t in study["trials"] if t["label"].startswith(after))
-    b = next(t for t in study["trials"] if t["label"].startswith(before))
+    """The means of the trials of label ``after`` over those of ``before`` (A1, A2, ... are
+    trials of A)."""
+
+    def mean(label: str, key: str) -> float | None:
+        values = [t.get(key) for t in study["trials"] if t["label"].rstrip("0123456789") == label]
+        return None if not values or None in values else sum(values) / len(values)
+
     parts = []
     for key, name in (("install_s", "install"), ("wall_s", "make test"), ("cpu_s", "CPU"),
-                      ("pytest_s", "pytest")):  # fmt: skip
-        if a.get(key) and b.get(key):
-            parts.append(f"{name} {a[key] / b[key]:.2f}")
-    if a.get("install_s") and b.get("install_s"):
-        both = (a["install_s"] + a["wall_s"]) / (b["install_s"] + b["wall_s"])
-        parts.append(f"install and make test {both:.2f}")
-    return f"{a['label']} / {b['label']}: " + ", ".join(parts) + "."
+                      ("pytest_s", "pytest"), ("both", "install and make test")):  # fmt: skip
+        if key == "both":
+            a_i, b_i = mean(after, "install_s"), mean(before, "install_s")
+            a = None if a_i is None else a_i + (mean(after, "wall_s") or 0.0)
+            b = None if b_i is None else b_i + (mean(before, "wall_s") or 0.0)
+        else:
+            a, b = mean(after, key), mean(before, key)
+        if a and b:
+            parts.append(f"{name} {a / b:.2f}")
+    return f"{after} / {before} (means of their trials): " + ", ".join(parts) + "."
 
 
 def _durations(t: dict[str, Any]) -> list[str]:

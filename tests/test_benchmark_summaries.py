@@ -16,6 +16,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import ablation  # noqa: E402
 import pendulum_behaviour  # noqa: E402
+import test_suite  # noqa: E402
 
 import pporpe.online  # noqa: E402
 
@@ -667,3 +668,34 @@ def test_engine_divergence_refuses_bad_input_before_any_work(
     with pytest.raises(SystemExit):
         ed.main(argv)
     assert named in capsys.readouterr().err
+
+
+def test_the_committed_test_suite_page_is_its_json_rendered() -> None:
+    """benchmarks/results/test_suite.md is what ``python benchmarks/test_suite.py render``
+    writes from the committed JSON, and each study's ratio line holds its numbers."""
+    data = json.loads(test_suite.JSON_PATH.read_text())
+    assert test_suite.PAGE_PATH.read_text() == test_suite.render(data)
+    before = {"label": "A", "install_s": 40.0, "wall_s": 400.0, "cpu_s": 800.0}
+    after = {"label": "B", "install_s": 40.0, "wall_s": 200.0, "cpu_s": 400.0}
+    study = {"trials": [before, after]}
+    assert test_suite._ratio_line(study, "B", "A") == (
+        "B / A (means of their trials): install 1.00, make test 0.50, CPU 0.50, "
+        "install and make test 0.55."
+    )
+
+
+def test_the_pytest_summary_and_slowest_tests_are_read_from_its_output() -> None:
+    text = (
+        "======= slowest 15 durations =======\n"
+        "97.31s call     tests/test_fused.py::test_compiled\n"
+        "25.63s setup    tests/test_sweep_stages.py::test_stage_2@tinysweep\n"
+        "=========================== short test summary info ============================\n"
+        "SKIPPED [1] tests/test_inputs.py:364: running as root\n"
+        "2151 passed, 1 skipped, 8 warnings in 768.75s (0:12:48)\n"
+    )
+    line, seconds, slow = test_suite.pytest_summary(text)
+    assert (line, seconds) == ("2151 passed, 1 skipped, 8 warnings", 768.75)
+    assert [(d["s"], d["when"], d["test"]) for d in slow] == [
+        (97.31, "call", "tests/test_fused.py::test_compiled"),
+        (25.63, "setup", "tests/test_sweep_stages.py::test_stage_2@tinysweep"),
+    ]

@@ -271,3 +271,16 @@ def test_a_fourth_method_gets_its_rows_rival_column_and_legend(tmp_path: Path) -
         "stronger pull or SPO's reversed gradient act)"
     ) in summary
     assert "| final performance | pendulum | SPO | 0.62 [" in (root / "REPORT.md").read_text()
+
+
+def test_probability_of_improvement_is_the_pair_count_bit_for_bit_over_resamples() -> None:
+    """Vectorised over a leading axis (as the bootstrap calls it), against a plain count of
+    the pairs: the same float, bit for bit, with ties (scores rounded to one decimal)."""
+    rng = np.random.default_rng(5)
+    x = np.round(rng.normal(size=(200, 7)), 1)
+    y = np.round(rng.normal(size=(200, 4)), 1)
+    got = probability_of_improvement(x, y)
+    for row, (a, b) in enumerate(zip(x, y, strict=True)):
+        pairs = [1.0 if u > v else 0.5 if u == v else 0.0 for u in a for v in b]
+        assert got[row] == sum(pairs) / len(pairs)
+    assert got.shape == (200,) and np.any(got != np.round(got))

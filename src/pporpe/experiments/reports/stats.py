@@ -125,7 +125,9 @@ def probability_of_improvement(x: Any, y: Any, axis: int = -1) -> Any:
         raise ValueError(f"axis must be the last axis; got {axis}")
     a = np.asarray(x, dtype=np.float64)[..., :, None]
     b = np.asarray(y, dtype=np.float64)[..., None, :]
-    return ((a > b) + 0.5 * (a == b)).mean(axis=(-1, -2))
+    wins = np.count_nonzero(a > b, axis=(-1, -2))  # counted as ints: no float copy of every
+    ties = np.count_nonzero(a == b, axis=(-1, -2))  # pair, and the same exact sum as before
+    return (wins + 0.5 * ties) / (a.shape[-2] * b.shape[-1])
 
 
 def probability_of_improvement_ci(
