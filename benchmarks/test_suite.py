@@ -137,10 +137,9 @@ def measure(args: argparse.Namespace) -> None:
         "trials": trials,
         "ratios": [[args.order[1], args.order[0]]] if len(runs) == 2 else [],
         "durations_of": [t["label"] for t in trials[-len(runs):]],
-        "machine": trials[-1].pop("machine"),
+        "machine": {k: v for k, v in trials[-1]["machine"].items()
+                    if all(t["machine"].get(k) == v for t in trials)},  # what every trial shared
     }  # fmt: skip
-    for t in trials:
-        t.pop("machine", None)
     data = json.loads(JSON_PATH.read_text()) if JSON_PATH.exists() else {"studies": []}
     data["studies"].append(study)
     write(data)
@@ -179,15 +178,15 @@ def _ratio_line(study: dict[str, Any], after: str, before: str) -> str:
 
     parts = []
     for key, name in (("install_s", "install"), ("wall_s", "make test"), ("cpu_s", "CPU"),
-                      ("pytest_s", "pytest"), ("both", "install and make test")):  # fmt: skip
-        if key == "both":
-            a_i, b_i = mean(after, "install_s"), mean(before, "install_s")
-            a = None if a_i is None else a_i + (mean(after, "wall_s") or 0.0)
-            b = None if b_i is None else b_i + (mean(before, "wall_s") or 0.0)
-        else:
-            a, b = mean(after, key), mean(before, key)
+                      ("pytest_s", "pytest")):  # fmt: skip
+        a, b = mean(after, key), mean(before, key)
         if a and b:
             parts.append(f"{name} {a / b:.2f}")
+    a_install, b_install = mean(after, "install_s"), mean(before, "install_s")
+    a_test, b_test = mean(after, "wall_s"), mean(before, "wall_s")
+    if a_install and b_install and a_test and b_test:
+        both = (a_install + a_test) / (b_install + b_test)
+        parts.append(f"install and make test {both:.2f}")
     return f"{after} / {before} (means of their trials): " + ", ".join(parts) + "."
 
 

@@ -50,7 +50,6 @@ COLUMNS: tuple[str, ...] = (
 the four of its :class:`~pporpe.runs.kinds.SurrogateDiagnostics` (empty cells where the
 record has none)."""
 
-_INT_COLUMNS = frozenset({"episode", "total_steps", "length"})
 _DIAGNOSTIC_COLUMNS = ("reg_amount", "past_threshold", "ratio_dev", "trace_decay")
 
 

@@ -128,7 +128,7 @@ def run_job(
         return [_done_or(path, {"status": "failed", "error": _failure(exc)}) for path in paths]
 
 
-def _worker_init(stop: Any = None, environ: dict[str, str] | None = None) -> None:
+def _worker_init(stop: Any, environ: dict[str, str]) -> None:
     """Pool initializer: take the grid process's environment, die with the pool, leave
     Ctrl-C to the parent, and keep C-level chatter off the terminal.
 
@@ -151,9 +151,8 @@ def _worker_init(stop: Any = None, environ: dict[str, str] | None = None) -> Non
 
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if environ is not None:
-        os.environ.clear()
-        os.environ.update(environ)
+    os.environ.clear()
+    os.environ.update(environ)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if "torch" in sys.modules:  # imported by the server: its threads as OMP_NUM_THREADS says
         with contextlib.suppress(ValueError, RuntimeError):
